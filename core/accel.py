@@ -1,0 +1,109 @@
+"""The one interface every structure implements, and ``build(mesh, kind)``.
+
+Every structure answers the two questions of pbrt's accelerators: the nearest hit
+(``trace``) and whether anything is hit at all (``occluded``).  This base class owns
+what they share: validating and preparing rays, bounded chunks so memory stays flat
+as the ray count grows, and an optional thread pool over chunks (numpy releases the
+GIL inside most ufuncs, so chunks overlap on several cores).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from .hits import Hits
+from .intersect import Rays, prepare_rays
+from .mesh import TriangleMesh
+
+KINDS = ("grid", "bvh", "embree", "brute")
+
+
+def default_threads() -> int:
+    return max(1, min(8, os.cpu_count() or 1))
+
+
+class Accel:
+    """Base of every structure. Subclasses implement ``_build`` and ``_trace_rays``."""
+
+    kind = "?"
+    #: rays per chunk: bounds the per-chunk working set
+    chunk_size = 1 << 16
+
+    def __init__(self, mesh: TriangleMesh, *, threads: int | None = None, chunk_size: int | None = None):
+        if not isinstance(mesh, TriangleMesh):
+            raise TypeError(f"build() needs a core.TriangleMesh, got {type(mesh).__name__}")
+        self.mesh = mesh
+        self.threads = default_threads() if threads is None else max(1, int(threads))
+        if chunk_size is not None:
+            self.chunk_size = max(1, int(chunk_size))
+        t0 = time.perf_counter()
+        self._build()
+        self.build_time = time.perf_counter() - t0
+
+    # -- what subclasses provide ---------------------------------------------------
+    def _build(self):
+        raise NotImplementedError
+
+    def _trace_rays(self, rays: Rays) -> Hits:
+        raise NotImplementedError
+
+    def _occluded_rays(self, rays: Rays) -> np.ndarray:
+        """Any-hit; structures override it to stop at the first hit."""
+        return self._trace_rays(rays).hit
+
+    # -- the public interface --------------------------------------------------------
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
+        """Nearest hit per ray with tmin < t <= tmax (see DESIGN.md's hit convention)."""
+        rays = prepare_rays(origins, directions, tmin, tmax)
+        m = len(rays)
+        if m == 0 or self.mesh.triangle_count == 0:
+            return Hits.empty(m)
+        parts = self._map_chunks(self._trace_rays, rays)
+        return Hits(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "triangle", "u", "v")))
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """(M,) bool: True where some triangle is hit with tmin < t <= tmax."""
+        rays = prepare_rays(origins, directions, tmin, tmax)
+        m = len(rays)
+        if m == 0 or self.mesh.triangle_count == 0:
+            return np.zeros(m, bool)
+        return np.concatenate(self._map_chunks(self._occluded_rays, rays))
+
+    def _map_chunks(self, fn, rays: Rays):
+        m = len(rays)
+        bounds = [(s, min(m, s + self.chunk_size)) for s in range(0, m, self.chunk_size)]
+        chunks = [rays.subset(slice(a, b)) for a, b in bounds]
+        if self.threads <= 1 or len(chunks) == 1:
+            return [fn(c) for c in chunks]
+        with ThreadPoolExecutor(self.threads) as pool:
+            return list(pool.map(fn, chunks))
+
+    def stats(self) -> dict:
+        return {"kind": self.kind, "triangles": self.mesh.triangle_count, "build_time_s": self.build_time}
+
+    def __repr__(self):
+        return f"<{type(self).__name__} {self.mesh.triangle_count} triangles, built in {self.build_time * 1e3:.1f} ms>"
+
+
+def build(mesh: TriangleMesh, kind: str = "bvh", **config) -> Accel:
+    """Build the structure ``kind`` ('grid', 'bvh', 'embree' or 'brute') over ``mesh``.
+
+    ``config`` goes to the structure (each documents its knobs and their defaults),
+    plus ``threads`` and ``chunk_size`` which every structure takes.
+    """
+    kind = str(kind).lower()
+    if kind == "brute":
+        from .brute import BruteForce as cls
+    elif kind == "grid":
+        from .grid import UniformGrid as cls
+    elif kind == "bvh":
+        from .bvh import BVH as cls
+    elif kind == "embree":
+        from .embree import EmbreeAccel as cls
+    else:
+        raise ValueError(f"unknown structure kind {kind!r}; expected one of {', '.join(KINDS)}")
+    return cls(mesh, **config)

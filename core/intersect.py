@@ -1,0 +1,259 @@
+"""The one ray/triangle kernel shared by every numpy structure (grid, BVH, brute force).
+
+Watertight ray/triangle intersection after Woop, Benthin and Wald, "Watertight
+Ray/Triangle Intersection", JCGT 2(1), 2013: the ray is sheared into a frame where it
+runs along +z, and the three 2D edge functions U, V, W decide the hit.  Because a
+shared edge yields the same edge function (negated) for both of its triangles, a ray
+can never slip between them.  Edge functions are evaluated in float32 and recomputed
+in float64 where one of them is exactly zero (section 3 of the paper).
+
+Conventions (DESIGN.md): nearest hit with tmin < t <= tmax; ties in t go to the
+lowest triangle index; both faces hit; degenerate triangles never hit; directions
+need not be normalised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+F32 = np.float32
+MISS_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@dataclass
+class Rays:
+    """A validated, prepared ray batch (per-ray shear constants of Woop et al.)."""
+
+    origins: np.ndarray  # (M, 3) float32
+    directions: np.ndarray  # (M, 3) float32
+    tmin: np.ndarray  # (M,) float32
+    tmax: np.ndarray  # (M,) float32
+    kx: np.ndarray  # (M,) intp: the three axes, kz the dominant one
+    ky: np.ndarray
+    kz: np.ndarray
+    shear: np.ndarray  # (M, 3) float32: Sx, Sy, Sz
+
+    def __len__(self):
+        return len(self.origins)
+
+    def subset(self, idx) -> "Rays":
+        return Rays(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+
+
+def _as_rays_array(a, name):
+    a = np.asarray(a)
+    if a.ndim == 1 and a.shape[0] == 3:
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (M, 3), got {a.shape}")
+    if not np.issubdtype(a.dtype, np.number):
+        raise ValueError(f"{name} must be numeric, got dtype {a.dtype}")
+    return a
+
+
+def _per_ray(x, m, name):
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 0:
+        x = np.full(m, x)
+    if x.shape != (m,):
+        raise ValueError(f"{name} must be a scalar or shape ({m},), got {x.shape}")
+    if np.isnan(x).any():
+        raise ValueError(f"{name} contains NaN")
+    return x
+
+
+def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
+    """Validate a ray batch and precompute its shear.
+
+    Raises ValueError for mismatched shapes, NaN or infinite origins or directions,
+    zero-length directions (after rounding to float32), NaN interval bounds, or
+    tmin > tmax on any ray; the message counts the bad rays and names the first.
+    """
+    o = _as_rays_array(origins, "origins")
+    d = _as_rays_array(directions, "directions")
+    if o.shape != d.shape:
+        raise ValueError(f"origins {o.shape} and directions {d.shape} differ in shape")
+    m = len(o)
+    o32 = np.ascontiguousarray(o, dtype=F32)
+    d32 = np.ascontiguousarray(d, dtype=F32)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for name, a in (("origins", o32), ("directions", d32)):
+            bad = ~np.isfinite(a).all(axis=1)
+            if bad.any():
+                w = np.flatnonzero(bad)
+                raise ValueError(f"{w.size} of {m} rays have NaN or infinite {name} (or overflow float32), first at ray {w[:5].tolist()}")
+    zero = ~(d32 != 0).any(axis=1)
+    if zero.any():
+        w = np.flatnonzero(zero)
+        raise ValueError(f"{w.size} of {m} rays have a zero-length direction, first at ray {w[:5].tolist()}")
+    lo = _per_ray(tmin, m, "tmin")
+    hi = _per_ray(tmax, m, "tmax")
+    if (lo > hi).any():
+        w = np.flatnonzero(lo > hi)
+        raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
+    ad = np.abs(d32)
+    kz = np.argmax(ad, axis=1)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    rows = np.arange(m)
+    dz = d32[rows, kz]
+    # Keep the winding of the sheared frame: swap x and y when the dominant axis is negative.
+    neg = dz < 0
+    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
+    shear = np.empty((m, 3), F32)
+    shear[:, 0] = d32[rows, kx] / dz
+    shear[:, 1] = d32[rows, ky] / dz
+    shear[:, 2] = F32(1.0) / dz
+    with np.errstate(over="ignore"):
+        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), kx, ky, kz, shear)
+
+
+def _edge_functions(ax, ay, bx, by, cx, cy):
+    return cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax
+
+
+def _sheared(rays: Rays, ray_idx, tri_idx, tri_vertices, dtype):
+    """Triangle corners in the ray's sheared frame: px, py (P, 3), rz (P, 3), shear (P, 3)."""
+    p = len(ray_idx)
+    o = rays.origins[ray_idx].astype(dtype, copy=False)
+    kx = rays.kx[ray_idx]
+    ky = rays.ky[ray_idx]
+    kz = rays.kz[ray_idx]
+    if dtype == F32:
+        s = rays.shear[ray_idx]
+    else:  # recompute the shear itself in the wider type
+        d = rays.directions[ray_idx].astype(dtype)
+        rows = np.arange(p)
+        dz = d[rows, kz]
+        s = np.stack([d[rows, kx] / dz, d[rows, ky] / dz, 1.0 / dz], axis=1)
+    rel = tri_vertices[tri_idx].astype(dtype, copy=False) - o[:, None, :]  # A, B, C - origin
+    rows = np.arange(p)
+    rx = rel[rows, :, kx]  # (P, 3): x of A, B, C
+    ry = rel[rows, :, ky]
+    rz = rel[rows, :, kz]
+    px = rx - s[:, 0:1] * rz
+    py = ry - s[:, 1:2] * rz
+    return px, py, rz, s
+
+
+def precise_tuv(rays: Rays, ray_idx, tri_idx, tri_vertices):
+    """t, u, v in float64 for pairs already known to hit (no inside test): the reported values."""
+    px, py, rz, s = _sheared(rays, ray_idx, tri_idx, tri_vertices, np.float64)
+    U, V, W = _edge_functions(px[:, 0], py[:, 0], px[:, 1], py[:, 1], px[:, 2], py[:, 2])
+    det = U + V + W
+    z = s[:, 2:3] * rz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        return (U * z[:, 0] + V * z[:, 1] + W * z[:, 2]) * inv, V * inv, W * inv
+
+
+def intersect(rays: Rays, ray_idx, tri_idx, tri_vertices, t_hi=None, want_uv=False):
+    """Intersect the pairs (rays[ray_idx[k]], triangle tri_idx[k]).
+
+    tri_vertices: (T, 3, 3) float32 (``TriangleMesh.tri_vertices``).
+    t_hi: optional (P,) float32 upper bound replacing rays.tmax for these pairs (the
+    current nearest hit), so the kernel reports only hits that could improve it.
+    Returns t (P,) float32, +inf where the pair does not hit within (tmin, t_hi];
+    with ``want_uv`` also u, v (P,) float32 so that p = (1-u-v) v0 + u v1 + v v2.
+    """
+    ray_idx = np.asarray(ray_idx)
+    tri_idx = np.asarray(tri_idx)
+    p = ray_idx.shape[0]
+    if p == 0:
+        e = np.empty(0, F32)
+        return (e, e.copy(), e.copy()) if want_uv else e
+    px, py, rz, s = _sheared(rays, ray_idx, tri_idx, tri_vertices, F32)
+    U, V, W = _edge_functions(px[:, 0], py[:, 0], px[:, 1], py[:, 1], px[:, 2], py[:, 2])
+    zero = (U == 0) | (V == 0) | (W == 0)
+    if zero.any():
+        # Section 3 of Woop et al.: recompute in double where float32 cannot tell the side.
+        z = np.flatnonzero(zero)
+        pxd = px[z].astype(np.float64)
+        pyd = py[z].astype(np.float64)
+        Ud, Vd, Wd = _edge_functions(pxd[:, 0], pyd[:, 0], pxd[:, 1], pyd[:, 1], pxd[:, 2], pyd[:, 2])
+        # Keep the sign exactly; float32 rounding of a tiny double must not flip it to zero.
+        tiny = np.finfo(F32).smallest_subnormal
+        for full, dbl in ((U, Ud), (V, Vd), (W, Wd)):
+            r = dbl.astype(F32)
+            r = np.where((r == 0) & (dbl != 0), np.copysign(tiny, dbl).astype(F32), r)
+            full[z] = r
+    det = U + V + W
+    inside = ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0))) & (det != 0)
+    z3 = s[:, 2:3] * rz
+    T = U * z3[:, 0] + V * z3[:, 1] + W * z3[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t = np.where(inside, T / det, np.inf).astype(F32, copy=False)
+        lo = rays.tmin[ray_idx]
+        hi = rays.tmax[ray_idx] if t_hi is None else t_hi
+        ok = inside & (t > lo) & (t <= hi) & np.isfinite(t)
+        t = np.where(ok, t, F32(np.inf))
+        if not want_uv:
+            return t
+        inv = np.where(ok, F32(1.0) / det, F32(0.0))
+        return t, (V * inv).astype(F32), (W * inv).astype(F32)
+
+
+# -- nearest-hit reduction -----------------------------------------------------------
+
+def _sortable(t32):
+    """Map float32 to uint32 so that unsigned order equals float order (no NaN here)."""
+    b = np.ascontiguousarray(t32, dtype=F32).view(np.uint32)
+    return np.where(b & np.uint32(0x80000000), ~b, b | np.uint32(0x80000000))
+
+
+def _unsortable(k32):
+    k32 = k32.astype(np.uint32)
+    b = np.where(k32 & np.uint32(0x80000000), k32 & np.uint32(0x7FFFFFFF), ~k32)
+    return b.view(F32)
+
+
+class NearestHits:
+    """Per-ray nearest (t, triangle) with the tie rule, packed in one uint64 key.
+
+    The key is (sortable bits of t) << 32 | triangle, so the minimum key is the nearest
+    hit and, among equal t, the lowest triangle index (DESIGN.md's hit convention).
+    """
+
+    def __init__(self, m: int):
+        self.key = np.full(m, MISS_KEY, np.uint64)
+
+    def update(self, ray_idx, tri_idx, t):
+        """Fold in kernel results t (P,) for pairs (ray_idx, tri_idx); inf means no hit."""
+        m = np.isfinite(t)
+        if not m.any():
+            return
+        r = ray_idx[m]
+        k = (_sortable(t[m]).astype(np.uint64) << np.uint64(32)) | tri_idx[m].astype(np.uint64)
+        np.minimum.at(self.key, r, k)
+
+    def t(self, ray_idx=None) -> np.ndarray:
+        """Current nearest t (float32, inf for no hit yet), for all rays or a subset."""
+        k = self.key if ray_idx is None else self.key[ray_idx]
+        t = _unsortable((k >> np.uint64(32)).astype(np.uint32))
+        return np.where(k == MISS_KEY, F32(np.inf), t)
+
+    def triangle(self, ray_idx=None) -> np.ndarray:
+        k = self.key if ray_idx is None else self.key[ray_idx]
+        tri = (k & np.uint64(0xFFFFFFFF)).astype(np.int64)
+        return np.where(k == MISS_KEY, -1, tri).astype(np.int32)
+
+    def finish(self, rays: Rays, tri_vertices) -> "Hits":
+        """Hits with barycentrics, recomputed once per hit ray by the same kernel."""
+        from .hits import Hits
+
+        t = self.t()
+        tri = self.triangle()
+        u = np.zeros(len(t), F32)
+        v = np.zeros(len(t), F32)
+        h = np.flatnonzero(tri >= 0)
+        if h.size:
+            th, uh, vh = precise_tuv(rays, h, tri[h], tri_vertices)
+            # keep the float32 t where float64 would round it out of (tmin, tmax]
+            th = th.astype(F32)
+            ok = np.isfinite(th) & (th > rays.tmin[h]) & (th <= rays.tmax[h])
+            t[h] = np.where(ok, th, t[h])
+            u[h] = uh
+            v[h] = vh
+        return Hits(t=t, triangle=tri, u=u, v=v)

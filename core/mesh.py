@@ -1,0 +1,119 @@
+"""TriangleMesh: world-space triangles as numpy arrays, validated once."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(eq=False)
+class TriangleMesh:
+    """Triangles in world space.
+
+    vertices:  (V, 3) float32
+    triangles: (T, 3) int32 indices into ``vertices``
+    object_index: (T,) int32, per triangle the index into ``object_names`` (optional)
+    polygon_index: (T,) int32, per triangle the source polygon of its object (optional)
+    object_names: names of the source objects (optional)
+
+    Construction validates shapes, indices and finiteness and raises ``ValueError``
+    with a message that says what is wrong and where.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    object_index: np.ndarray | None = None
+    polygon_index: np.ndarray | None = None
+    object_names: list[str] = field(default_factory=list)
+
+    def __post_init__(self):
+        v = np.asarray(self.vertices)
+        f = np.asarray(self.triangles)
+        if v.size == 0:
+            v = v.reshape(0, 3)
+        if f.size == 0:
+            f = f.reshape(0, 3)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise ValueError(f"vertices must have shape (V, 3), got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3:
+            raise ValueError(f"triangles must have shape (T, 3), got {f.shape}")
+        if not np.issubdtype(v.dtype, np.number) or np.issubdtype(v.dtype, np.complexfloating):
+            raise ValueError(f"vertices must be real numbers, got dtype {v.dtype}")
+        if f.size and not np.issubdtype(f.dtype, np.integer):
+            if np.issubdtype(f.dtype, np.floating) and np.all(np.mod(f, 1) == 0):
+                f = f.astype(np.int64)
+            else:
+                raise ValueError(f"triangles must be integer indices, got dtype {f.dtype}")
+        v32 = np.ascontiguousarray(v, dtype=np.float32)
+        bad = ~np.isfinite(v32).all(axis=1)
+        if bad.any():
+            where = np.flatnonzero(bad)
+            raise ValueError(
+                f"{where.size} of {len(v32)} vertices are NaN or infinite (or overflow float32), "
+                f"first at vertex index {where[:5].tolist()}"
+            )
+        if f.size:
+            lo, hi = int(f.min()), int(f.max())
+            if lo < 0 or hi >= len(v32):
+                badt = np.flatnonzero(((f < 0) | (f >= len(v32))).any(axis=1))
+                raise ValueError(
+                    f"{badt.size} triangles index vertices outside 0..{len(v32) - 1} "
+                    f"(indices from {lo} to {hi}), first at triangle {badt[:5].tolist()}"
+                )
+        self.vertices = v32
+        self.triangles = np.ascontiguousarray(f, dtype=np.int32)
+        T = len(self.triangles)
+        for name in ("object_index", "polygon_index"):
+            a = getattr(self, name)
+            if a is not None:
+                a = np.ascontiguousarray(a, dtype=np.int32)
+                if a.shape != (T,):
+                    raise ValueError(f"{name} must have shape ({T},), got {a.shape}")
+                setattr(self, name, a)
+        self.object_names = list(self.object_names)
+        self._tri_vertices = None
+        self._valid = None
+
+    # -- derived arrays (computed once, on demand) ---------------------------------
+    @property
+    def triangle_count(self) -> int:
+        return int(len(self.triangles))
+
+    @property
+    def tri_vertices(self) -> np.ndarray:
+        """(T, 3, 3) float32: the corners of each triangle, contiguous for fast gathers."""
+        if self._tri_vertices is None:
+            self._tri_vertices = np.ascontiguousarray(self.vertices[self.triangles])
+        return self._tri_vertices
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(T,) bool: False for degenerate (zero-area in float64) triangles, which never hit."""
+        if self._valid is None:
+            tv = self.tri_vertices.astype(np.float64)
+            n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+            self._valid = (n != 0.0).any(axis=1)
+        return self._valid
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) float32 of the vertices that triangles use; zeros for an empty mesh."""
+        if self.triangle_count == 0:
+            z = np.zeros(3, np.float32)
+            return z, z.copy()
+        used = self.tri_vertices.reshape(-1, 3)
+        return used.min(axis=0), used.max(axis=0)
+
+    def areas(self) -> np.ndarray:
+        """(T,) float64 triangle areas."""
+        tv = self.tri_vertices.astype(np.float64)
+        return 0.5 * np.linalg.norm(np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0]), axis=1)
+
+    def surface_area(self) -> float:
+        return float(self.areas().sum())
+
+    def nbytes(self) -> int:
+        return int(self.vertices.nbytes + self.triangles.nbytes)
+
+    def __repr__(self):
+        return f"TriangleMesh({len(self.vertices)} vertices, {self.triangle_count} triangles, {len(self.object_names)} objects)"
