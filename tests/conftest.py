@@ -7,32 +7,18 @@ Blender tests import the full add-on through ``load_addon()``.
 
 from __future__ import annotations
 
-import importlib.util
 import sys
-import types
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT.parent / "shared" / "scenes"
+sys.path.insert(0, str(ROOT / "scripts"))
 
-if "hybrid_raycast" not in sys.modules:
-    pkg = types.ModuleType("hybrid_raycast")
-    pkg.__path__ = [str(ROOT)]
-    pkg.__file__ = str(ROOT / "__init__.py")
-    sys.modules["hybrid_raycast"] = pkg
+from _package import core_package, load_addon  # noqa: E402,F401  (load_addon is for Blender tests)
 
-
-def load_addon(name: str = "hybrid_raycast_addon"):
-    """Import the whole add-on (``__init__`` included) under ``name``; needs bpy."""
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, ROOT / "__init__.py", submodule_search_locations=[str(ROOT)])
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+core_package()
 
 
 def real_scene_paths():

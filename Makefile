@@ -1,0 +1,58 @@
+# Hybrid Ray Cast: the two commands a new machine needs are `make demo` and `make test`.
+# Both create the project virtual environment (.venv, pinned in requirements-dev.txt) when missing.
+
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+BPYDIR  = $(shell $(PY) -c "import importlib.util as u, os; print(os.path.dirname(u.find_spec('bpy').origin))" 2>/dev/null)
+BLENDER_EXT = $(BPYDIR)/5.0/scripts/addons_core/bl_pkg/cli/blender_ext.py
+VALID_TAGS  = $(BPYDIR)/5.0/scripts/modules/_bpy_internal/extensions/tags.py
+WHEELS := $(shell sed -n 's|^ *"\./\(wheels/[^"]*\.whl\)",*|\1|p' blender_manifest.toml)
+VERSION := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
+ZIP    := dist/hybrid_raycast-$(VERSION).zip
+
+.PHONY: demo test test-fast venv wheels validate extension bench-extract bench-trace clean
+
+## The main job: a headless analysis of the built-in demo scene.
+demo: $(VENV)/.stamp
+	$(PY) scripts/demo.py --output out/demo
+
+## The tests (what CI runs).
+test: $(VENV)/.stamp wheels
+	$(PY) -m pytest -q -ra
+
+## The tests without the slower Blender install round-trip.
+test-fast: $(VENV)/.stamp
+	$(PY) -m pytest -q -ra -m "not slow"
+
+venv: $(VENV)/.stamp
+$(VENV)/.stamp: requirements-dev.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements-dev.txt
+	touch $@
+
+## embreex wheels named in the manifest, fetched from PyPI (never committed).
+wheels: $(WHEELS)
+wheels/%.whl: | $(VENV)/.stamp
+	@mkdir -p wheels
+	$(PY) scripts/fetch_wheels.py $@
+
+## Blender's own validator, with Blender's own tags.
+validate: $(VENV)/.stamp wheels
+	$(PY) $(BLENDER_EXT) validate --valid-tags $(VALID_TAGS) .
+
+## The installable zip, built by Blender's own tool (no tests inside).
+extension: $(ZIP)
+$(ZIP): $(VENV)/.stamp wheels $(shell git ls-files '*.py' '*.toml' 2>/dev/null)
+	@mkdir -p dist
+	$(PY) $(BLENDER_EXT) build --valid-tags $(VALID_TAGS) --source-dir . --output-filepath $@
+
+bench-extract: $(VENV)/.stamp
+	$(PY) scripts/bench_extract.py
+
+bench-trace: $(VENV)/.stamp
+	$(PY) scripts/bench_trace.py
+
+clean:
+	rm -rf dist out .pytest_cache
