@@ -11,9 +11,8 @@ def store_summary(props, summary: dict):
     props.triangle_count = summary["triangles"]
     props.object_count = summary["objects"]
     props.instance_count = summary["instances"]
-    props.extraction_time = summary["extraction_time_s"]
-    props.bounds_min = summary["bounds_min"]
-    props.bounds_max = summary["bounds_max"]
+    props.extraction_time = summary["extraction_seconds"]
+    props.bounds_min, props.bounds_max = summary["bounds"]
     props.has_summary = True
 
 
@@ -35,5 +34,5 @@ class HYBRID_RAYCAST_OT_scene_summary(bpy.types.Operator):
             return {"CANCELLED"}
         summary = scene_summary(depsgraph, mesh, time.perf_counter() - t0)
         store_summary(props, summary)
-        self.report({"INFO"}, f"{summary['triangles']:,} triangles from {summary['objects']} objects in {summary['extraction_time_s'] * 1e3:.0f} ms")
+        self.report({"INFO"}, f"{summary['triangles']:,} triangles from {summary['objects']} objects in {summary['extraction_seconds'] * 1e3:.0f} ms")
         return {"FINISHED"}

@@ -1,0 +1,500 @@
+"""Blender scene -> ``core.TriangleMesh``: the evaluated, visible, render-enabled triangles.
+
+What is extracted
+-----------------
+Every entry of ``depsgraph.object_instances`` whose (evaluated) object is a MESH, so
+modifiers and geometry nodes are applied, and collection, vertex/face, particle and
+geometry-nodes instances come with their instance matrices. Curves, text, surfaces and
+metaballs are *not* read from their own entry: Blender (checked on 5.0.1) lists the
+evaluated mesh of every such object a second time, as a MESH instance whose parent is the
+object itself, so reading both (e.g. ``to_mesh()`` on the FONT entry plus the instance)
+would count their triangles twice. Only MESH entries are read, which counts each once.
+Curves (hair), point clouds and volumes have no triangles and are skipped.
+
+Visibility: an entry is kept when its *root* object (the object itself, or for an
+instance the top-level instancer, ``inst.parent``) is visible in the viewport of the view
+layer (``visible_get``: not ``hide_set``, not ``hide_viewport``, collection and layer
+collection not hidden) **and** enabled for render (not ``hide_render``, and reachable
+through collections that are neither excluded nor ``hide_render``). Instances of a hidden
+instancer are therefore left out too. An instanced object with ``hide_render`` is left
+out as well (Blender's viewport depsgraph still lists it). An instancer's own geometry is
+left out where Blender would not render it (``show_instancer_for_render`` off, or the
+depsgraph's ``show_self`` off). Modifier levels are the depsgraph's: the viewport one
+for ``evaluated_depsgraph_get()`` (e.g. Subdivision Surface ``levels``, not
+``render_levels``).
+
+Names (``TriangleMesh.object_names``), one entry per source of geometry, unique:
+- an object's own geometry: the object's name (``"Cube"``; also ``"Text"`` for the mesh
+  of a text, curve, surface or metaball object);
+- an instanced object (collection, vertex/face or particle instancing):
+  ``"Instancer/Instanced"``, e.g. ``"CollectionEmpty/Tree"``; the instancer is the
+  top-level one for nested instances;
+- geometry-nodes instances: ``"Instancer/MeshData"``, the evaluated mesh datablock's name
+  (for an Object Info instance that is the instanced object's mesh name).
+An entry is one (source, evaluated mesh) pair, so ``polygon_index`` is always a polygon
+of one mesh; where one source brings several meshes (an instanced object that has
+geometry-nodes instances of its own, two generated meshes both named "Mesh"), the later
+entries get " #<entry>" appended to keep names unique.
+``mesh.source_info`` (a ``SourceInfo``) holds, per entry, the instancer, the source,
+the number of instances and of triangles.
+
+Not handled: ``hide_render`` on an *intermediate* instancer of nested instances (only the
+top-level instancer and the instanced object itself are checked; the depsgraph's
+iteration does not expose the chain), per-ray visibility (``visible_camera`` ...),
+holdout and indirect-only collections, and hair curves, point clouds and volumes.
+
+Speed: no Python loop per vertex or triangle. The Python loop is per depsgraph instance
+(a dict look-up and two appends after the first placement of a kind); each evaluated mesh
+is read once with ``foreach_get`` into numpy, keyed by its pointer (the depsgraph owns its
+meshes while we iterate, and we create no temporaries such as ``to_mesh()``, so a pointer
+names one mesh for the whole walk); all placements' matrices come from one
+``object_instances.foreach_get('matrix_world')`` (an instance's data is only valid
+during its iteration step, hence indices rather than kept references); each mesh is
+transformed by all its placements in one batched float32 matmul into a preallocated
+output. Triangles of triangle/quad meshes are built in numpy (see ``mesh_triangles``),
+about twice as fast as ``loop_triangles.foreach_get``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.mesh import TriangleMesh
+
+__all__ = ["NoGeometryError", "SourceInfo", "scene_mesh", "scene_summary", "mesh_triangles"]
+
+_INT_MAX = 2147483647
+_PROGRESS_EVERY = 0.1  # seconds between progress calls
+
+
+class NoGeometryError(ValueError):
+    """The scene (or the selection) has no visible, render-enabled triangles."""
+
+
+@dataclass
+class SourceInfo:
+    """Per entry of ``object_names``: where its triangles come from."""
+
+    instancer: list = field(default_factory=list)  # top-level instancer name, or None (own geometry)
+    source: list = field(default_factory=list)  # instanced object or mesh name, or None
+    instances: list = field(default_factory=list)  # placements of this source
+    triangles: list = field(default_factory=list)  # triangles it contributes
+    root_objects: int = 0  # distinct top-level objects contributing triangles
+    meshes_read: int = 0  # distinct evaluated meshes read (each once, however often placed)
+    seconds: float = 0.0
+
+
+# -- reading one evaluated mesh -------------------------------------------------------
+
+def mesh_triangles(me) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions (V,3) float32, triangles (T,3) int32, polygon (T,) int32) of a Mesh.
+
+    The triangles are Blender's loop triangles (``corner_tris``), in Blender's order.
+    For meshes of triangles and quads they are computed here from raw arrays (about twice
+    as fast as ``loop_triangles.foreach_get``) with the rule of Blender's
+    ``mesh_tessellate.cc``: a quad is cut on its 0-2 diagonal unless that diagonal lies
+    outside it, then on 1-3. Blender decides that with one of two tests, depending on
+    whether the mesh's face normals were cached when it tessellated; both are evaluated
+    here, and a mesh with a quad on which they disagree or which is too close to call in
+    float32 is read from ``loop_triangles`` instead, so the result is always Blender's.
+    """
+    nv = len(me.vertices)
+    co = np.empty(nv * 3, np.float32)
+    me.attributes["position"].data.foreach_get("vector", co)
+    co = co.reshape(nv, 3)
+    nt = len(me.loop_triangles)
+    if nt == 0:
+        return co, np.empty((0, 3), np.int32), np.empty(0, np.int32)
+    poly = np.empty(nt, np.int32)
+    me.loop_triangle_polygons.foreach_get("value", poly)
+    npoly = len(me.polygons)
+    # triangles per polygon from the triangle->polygon map; a polygon of n corners has n-2
+    per_poly = np.bincount(poly, minlength=npoly)
+    tris = None
+    if per_poly.size and per_poly.max() <= 2 and per_poly.min() >= 1 and ".corner_vert" in me.attributes:
+        tris = _tris_and_quads(me, co, poly, per_poly)
+    if tris is None:  # n-gons, or a quad too close to call
+        loops = np.empty(nt * 3, np.int32)
+        me.loop_triangles.foreach_get("loops", loops)
+        tris = _corner_verts(me)[loops].reshape(nt, 3)
+    return co, tris, poly
+
+
+def _corner_verts(me) -> np.ndarray:
+    n = len(me.loops)
+    cv = np.empty(n, np.int32)
+    if ".corner_vert" in me.attributes:
+        me.attributes[".corner_vert"].data.foreach_get("value", cv)  # raw copy, fast
+    else:
+        me.loops.foreach_get("vertex_index", cv)
+    return cv
+
+
+def _tris_and_quads(me, co, poly, per_poly):
+    """Blender's loop triangles of a mesh with only triangles and quads, in numpy;
+    None when a quad's split cannot be decided for certain."""
+    cv = _corner_verts(me)
+    start = np.zeros(len(per_poly), np.int32)
+    np.cumsum(per_poly[:-1] + 2, out=start[1:])  # first corner of each polygon
+    second = np.zeros(len(poly), np.int8)
+    second[1:] = poly[1:] == poly[:-1]  # the second triangle of a quad
+    s = start[poly]
+    # corners of each triangle within its polygon: (0, 1, 2), or (0, 2, 3) for a quad's second
+    loops = np.empty((len(poly), 3), np.int32)
+    loops[:, 0] = s
+    np.add(s, 1 + second, out=loops[:, 1])
+    np.add(s, 2 + second, out=loops[:, 2])
+    qa = np.flatnonzero(second[1:]).astype(np.int32)  # first triangle of each quad
+    if qa.size:
+        qc = np.take(cv, s[qa, None] + np.arange(4, dtype=np.int32))
+        qv = np.take(co, qc, axis=0)  # (Q, 4, 3) quad corners; np.take beats fancy indexing
+        flip = _quad_flips(qv)
+        if flip is None:
+            return None
+        if flip.any():
+            qa = qa[flip]
+            loops[qa] = s[qa, None] + _QUAD_FLIPPED[0]
+            loops[qa + 1] = s[qa, None] + _QUAD_FLIPPED[1]
+    return np.take(cv, loops)
+
+
+# Blender's other split of a quad, when the 0-2 diagonal lies outside: (0, 1, 3), (1, 2, 3)
+_QUAD_FLIPPED = np.array([[0, 1, 3], [1, 2, 3]], np.int32)
+
+
+def _quad_flips(qv):
+    """Per quad, whether Blender cuts it on the 1-3 diagonal; None if unsure for any.
+
+    Blender's two tests (BLI math_geom.cc), evaluated in float32 like Blender:
+    - is_quad_flip_v3_first_third_fast: flip when v2 and v4 lie on the same side of the
+      0-2 diagonal, ``((v2-v1) x (v3-v1)) . ((v4-v1) x (v3-v1)) > 0``;
+    - ..._with_normal, n = normalize((v1-v3) x (v2-v4)), t = (v3-v1) x n: flip when
+      ``v4.t >= v1.t or v2.t <= v1.t`` (the sign test is scale-free, so n is not normalized).
+    A quad is unsure when the tests disagree, its diagonals are nearly parallel, or a
+    compared quantity is within ~100 float32 roundings of its threshold (operation order or
+    fused multiply-adds in Blender's build could round it the other way).
+    """
+    x1, y1, z1 = (np.ascontiguousarray(qv[:, 0, k]) for k in range(3))
+    ax, ay, az = (qv[:, 1, k] - w for k, w in enumerate((x1, y1, z1)))  # v2 - v1
+    bx, by, bz = (qv[:, 2, k] - w for k, w in enumerate((x1, y1, z1)))  # v3 - v1
+    cx, cy, cz = (qv[:, 3, k] - w for k, w in enumerate((x1, y1, z1)))  # v4 - v1
+    sa, sb, sc = (abs(u) + abs(v) + abs(w) for u, v, w in ((ax, ay, az), (bx, by, bz), (cx, cy, cz)))
+    eps = np.float32(1e-5)
+    # normal-less test
+    pa = (ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)  # (v2-v1) x (v3-v1)
+    pc = (cy * bz - cz * by, cz * bx - cx * bz, cx * by - cy * bx)  # (v4-v1) x (v3-v1)
+    dot = pa[0] * pc[0] + pa[1] * pc[1] + pa[2] * pc[2]
+    flip = dot > 0
+    unsure = abs(dot) <= eps * sa * sb * sb * sc
+    # normal test: n ~ (v1-v3) x (v2-v4) = -(v3-v1) x ((v2-v1) - (v4-v1))
+    dx, dy, dz = ax - cx, ay - cy, az - cz
+    nx, ny, nz = dy * bz - dz * by, dz * bx - dx * bz, dx * by - dy * bx
+    sd = abs(dx) + abs(dy) + abs(dz)
+    sn = abs(nx) + abs(ny) + abs(nz)
+    unsure |= sn <= np.float32(1e-3) * sb * sd  # diagonals nearly parallel: n is unreliable
+    tx, ty, tz = by * nz - bz * ny, bz * nx - bx * nz, bx * ny - by * nx  # (v3-v1) x n
+    e4 = cx * tx + cy * ty + cz * tz  # (v4 - v1) . t
+    e2 = ax * tx + ay * ty + az * tz  # (v2 - v1) . t
+    flip_n = (e4 >= 0) | (e2 <= 0)
+    # Blender forms v.t - v1.t from absolute positions: its rounding grows with |v| |t|
+    s1 = abs(x1) + abs(y1) + abs(z1)
+    st = abs(tx) + abs(ty) + abs(tz)
+    unsure |= abs(e4) <= eps * (s1 + sc + s1) * st
+    unsure |= abs(e2) <= eps * (s1 + sa + s1) * st
+    unsure |= flip != flip_n
+    unsure |= ~np.isfinite(dot + e4 + e2)
+    return None if unsure.any() else flip
+
+
+def _cross(a, b):
+    """Row-wise cross product, float32 in and out (np.cross is slower on (N, 3))."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+# -- visibility -------------------------------------------------------------------------
+
+def _render_enabled_objects(view_layer) -> set:
+    """Pointers of objects reachable through collections that are neither excluded from
+    the view layer nor disabled for render, and that are not hide_render themselves."""
+    keep = set()
+    stack = [view_layer.layer_collection]
+    while stack:
+        lc = stack.pop()
+        if lc.exclude or lc.collection.hide_render:
+            continue
+        for ob in lc.collection.objects:
+            if not ob.hide_render:
+                keep.add(ob.as_pointer())
+        stack.extend(lc.children)
+    return keep
+
+
+class _Group:
+    """One evaluated mesh and every placement of it (positions in the instance iteration)."""
+
+    __slots__ = ("co", "tris", "poly", "where", "entries", "matrices")
+
+    def __init__(self, co, tris, poly):
+        self.co, self.tris, self.poly = co, tris, poly
+        self.where = []  # index of each placement in depsgraph.object_instances
+        self.entries = []  # its entry in object_names
+        self.matrices = None  # (k, 4, 4) float32, column-major rows: m[:, :3, :3] is R^T
+
+
+# -- extraction ------------------------------------------------------------------------
+
+def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progress=None) -> TriangleMesh:
+    """World-space triangles of what the depsgraph's scene renders (see module doc).
+
+    depsgraph: an evaluated depsgraph (``context.evaluated_depsgraph_get()``).
+    selected_only: only selected objects, and instances whose instancer is selected.
+    view_layer: for visibility and selection; the depsgraph's view layer by default.
+    progress: called with a fraction 0..1 now and then (at most every 0.1 s), and with 1.0
+        at the end.
+    Raises NoGeometryError when nothing visible has a triangle.
+    """
+    t0 = time.perf_counter()
+    vl = view_layer if view_layer is not None else depsgraph.view_layer
+    groups, names, info = _collect(depsgraph, vl, selected_only, progress)
+    if not groups:
+        scene = depsgraph.scene.name
+        if not len(depsgraph.scene.objects):
+            raise NoGeometryError(f"scene '{scene}' has no objects")
+        what = "selected, " if selected_only else ""
+        raise NoGeometryError(
+            f"no {what}visible, render-enabled object in scene '{scene}' (view layer '{vl.name}') has triangles"
+        )
+    mesh = _assemble(groups, names, progress)
+    info.seconds = time.perf_counter() - t0
+    mesh.source_info = info
+    if progress is not None:
+        progress(1.0)
+    return mesh
+
+
+def _collect(depsgraph, vl, selected_only, progress):
+    """Walk ``object_instances`` once: decide per (instancer, source, mesh), read each kept
+    mesh once, note where each placement is; then fetch all matrices in one foreach_get."""
+    render_ok = _render_enabled_objects(vl)
+    n_objects = max(1, len(depsgraph.objects))
+    next_report = time.perf_counter() + _PROGRESS_EVERY
+    roots: dict[int, bool] = {}  # root pointer -> kept
+    decided: dict[tuple, tuple | None] = {}  # (parent, instanced, mesh) pointers -> (group, entry)
+    groups: dict[int, _Group] = {}  # evaluated mesh pointer -> group
+    entry_of: dict[tuple, int] = {}  # (root, source kind, source, mesh) pointers -> entry
+    names: list[str] = []
+    taken: set[str] = set()
+    info = SourceInfo()
+    seen_roots = 0
+    n = -1
+
+    def root_kept(root) -> bool:
+        ptr = root.as_pointer()
+        kept = roots.get(ptr)
+        if kept is None:
+            kept = (
+                ptr in render_ok
+                and root.visible_get(view_layer=vl)
+                and (not selected_only or root.select_get(view_layer=vl))
+            )
+            roots[ptr] = kept
+        return kept
+
+    def decide(inst, ob, me):
+        """The (group, entry) of a new kind of placement, or None to leave it out."""
+        if inst.is_instance:
+            root = inst.parent.original  # the top-level instancer, also for nested instances
+            if not root_kept(root):
+                return None
+            src = inst.instance_object
+            src_orig = src.original if src is not None else root
+            if src_orig != root:  # an object placed by collection/vertex/face/particle instancing
+                if src_orig.hide_render:
+                    return None
+                # the mesh too: an instanced object can bring several (its own, its GN instances)
+                key = (root.as_pointer(), "object", src_orig.as_pointer(), me.as_pointer())
+                label = (root.name, src_orig.name)
+            elif inst.persistent_id[1] == _INT_MAX:  # the object's own geometry (curve, text...)
+                key, label = (root.as_pointer(), "self", 0, me.as_pointer()), (None, None)
+            else:  # geometry-nodes instances: named by the mesh datablock
+                key = (root.as_pointer(), "mesh", 0, me.as_pointer())
+                label = (root.name, me.name)
+        else:
+            root = ob.original
+            if not root_kept(root) or (root.is_instancer and not root.show_instancer_for_render):
+                return None
+            key, label = (root.as_pointer(), "self", 0, me.as_pointer()), (None, None)
+        if not len(me.loop_triangles):
+            return None
+        # The depsgraph owns its evaluated meshes while we iterate and we create no
+        # temporaries (no to_mesh), so a mesh pointer names one mesh for the whole walk.
+        group = groups.get(me.as_pointer())
+        if group is None:
+            group = groups[me.as_pointer()] = _Group(*mesh_triangles(me))
+        entry = entry_of.get(key)
+        if entry is None:
+            entry = entry_of[key] = len(names)
+            name = root.name if label[0] is None else f"{label[0]}/{label[1]}"
+            if name in taken:  # two sources with one name (e.g. two meshes named "Mesh")
+                name = f"{name} #{entry}"
+            names.append(name)
+            taken.add(name)
+            info.instancer.append(label[0])
+            info.source.append(label[1])
+        return group, entry
+
+    for n, inst in enumerate(depsgraph.object_instances):
+        ob = inst.object
+        if ob.type != "MESH":
+            if progress is not None and not inst.is_instance:
+                seen_roots += 1
+                if time.perf_counter() >= next_report:
+                    progress(0.5 * min(1.0, seen_roots / n_objects))
+                    next_report = time.perf_counter() + _PROGRESS_EVERY
+            continue
+        me = ob.data
+        parent, src = inst.parent, inst.instance_object
+        key = (parent.as_pointer() if parent is not None else ob.original.as_pointer(),
+               src.as_pointer() if src is not None else 0, me.as_pointer())
+        if key in decided:
+            hit = decided[key]
+        else:
+            hit = decided[key] = decide(inst, ob, me)
+            if progress is not None and not inst.is_instance:
+                seen_roots += 1
+                if time.perf_counter() >= next_report:
+                    progress(0.5 * min(1.0, seen_roots / n_objects))
+                    next_report = time.perf_counter() + _PROGRESS_EVERY
+        if hit is not None:
+            hit[0].where.append(n)
+            hit[0].entries.append(hit[1])
+
+    kept = [g for g in groups.values() if g.where]
+    if kept:
+        _fetch_matrices(depsgraph, n + 1, kept)
+        # placements the depsgraph would not draw (show_self off: e.g. a hidden emitter)
+        show = np.empty(n + 1, bool)
+        depsgraph.object_instances.foreach_get("show_self", show)
+        for g in kept:
+            ok = show[g.where]
+            if not ok.all():
+                g.where = np.asarray(g.where)[ok].tolist()
+                g.entries = np.asarray(g.entries)[ok].tolist()
+                g.matrices = g.matrices[ok]
+        kept = [g for g in kept if g.where]
+    counts = np.zeros(len(names), np.int64)
+    tris = np.zeros(len(names), np.int64)
+    for g in kept:
+        c = np.bincount(np.asarray(g.entries, np.int64), minlength=len(names))
+        counts += c
+        tris += c * len(g.tris)
+    live = np.flatnonzero(counts)
+    if len(live) < len(names):  # entries whose every placement was dropped: renumber
+        remap = np.full(len(names), -1, np.int64)
+        remap[live] = np.arange(len(live))
+        for g in kept:
+            g.entries = remap[np.asarray(g.entries, np.int64)].tolist()
+        names = [names[i] for i in live]
+        info.instancer = [info.instancer[i] for i in live]
+        info.source = [info.source[i] for i in live]
+        roots_of = [k[0] for k, e in sorted(entry_of.items(), key=lambda kv: kv[1])]
+        entry_roots = {roots_of[i] for i in live}
+    else:
+        entry_roots = {k[0] for k in entry_of}
+    info.instances = counts[live].tolist()
+    info.triangles = tris[live].tolist()
+    info.root_objects = len(entry_roots)
+    info.meshes_read = len(groups)
+    if progress is not None:
+        progress(0.5)
+    return kept, names, info
+
+
+def _fetch_matrices(depsgraph, count, groups):
+    """Every placement's world matrix, from one foreach_get over all instances (a matrix
+    read per instance in Python costs about ten times more). The instance data is only
+    valid during iteration, hence the index bookkeeping rather than kept references."""
+    try:
+        flat = np.empty(count * 16, np.float32)
+        depsgraph.object_instances.foreach_get("matrix_world", flat)
+        flat = flat.reshape(count, 4, 4)
+    except (RuntimeError, TypeError, ValueError):  # the walk changed length: read one by one
+        want = {i for g in groups for i in g.where}
+        flat = np.zeros((count, 4, 4), np.float32)
+        for i, inst in enumerate(depsgraph.object_instances):
+            if i in want:
+                flat[i] = np.array(inst.matrix_world, np.float32).T
+    for g in groups:
+        g.matrices = flat[g.where]
+
+
+def _assemble(groups, names, progress=None) -> TriangleMesh:
+    """Transform every group by all its matrices at once and concatenate."""
+    nv = sum(len(g.co) * len(g.where) for g in groups)
+    nt = sum(len(g.tris) * len(g.where) for g in groups)
+    if nv > np.iinfo(np.int32).max:
+        raise ValueError(f"the scene has {nv} vertices, more than int32 triangle indices can address")
+    vertices = np.empty((nv, 3), np.float32)
+    triangles = np.empty((nt, 3), np.int32)
+    object_index = np.empty(nt, np.int32)
+    polygon_index = np.empty(nt, np.int32)
+    v0 = f0 = 0
+    next_report = time.perf_counter() + _PROGRESS_EVERY
+    for g in groups:
+        k, V, T = len(g.where), len(g.co), len(g.tris)
+        m = g.matrices  # column-major: m[:, :3, :3] is R transposed, m[:, 3, :3] the translation
+        out_v = vertices[v0:v0 + k * V].reshape(k, V, 3)
+        # world = v @ R^T + t, all k placements in one batched matmul (float32 throughout)
+        np.matmul(g.co, m[:, :3, :3], out=out_v)
+        out_v += m[:, None, 3, :3]
+        out_t = triangles[f0:f0 + k * T].reshape(k, T, 3)
+        np.add(g.tris, (v0 + V * np.arange(k, dtype=np.int32))[:, None, None], out=out_t)
+        neg = np.linalg.det(m[:, :3, :3].astype(np.float64)) < 0
+        if neg.any():  # a mirrored placement turns the winding; swap two corners back
+            out_t[neg] = out_t[neg][:, :, [0, 2, 1]]
+        object_index[f0:f0 + k * T].reshape(k, T)[:] = np.asarray(g.entries, np.int32)[:, None]
+        polygon_index[f0:f0 + k * T].reshape(k, T)[:] = g.poly
+        v0 += k * V
+        f0 += k * T
+        if progress is not None and time.perf_counter() >= next_report:
+            progress(0.5 + 0.5 * f0 / nt)
+            next_report = time.perf_counter() + _PROGRESS_EVERY
+    return TriangleMesh(vertices, triangles, object_index, polygon_index, names)
+
+
+# -- summary ----------------------------------------------------------------------------
+
+def scene_summary(depsgraph, mesh: TriangleMesh, elapsed: float) -> dict:
+    """A small dict for reports and the UI: what was extracted and how long it took.
+
+    objects: top-level objects that contributed triangles (an instancer counts once);
+    sources: entries of ``object_names``; instances: placements made by instancing
+    (collection, particle, geometry nodes), not counting objects' own geometry;
+    bounds: [lo, hi] of the triangles' vertices; extraction_seconds: ``elapsed``.
+    """
+    lo, hi = mesh.bounds()
+    info = getattr(mesh, "source_info", None)
+    if info is not None:
+        objects = info.root_objects
+        instances = int(sum(n for n, who in zip(info.instances, info.instancer) if who is not None))
+    else:
+        objects, instances = len(mesh.object_names), 0
+    return {
+        "scene": depsgraph.scene.name,
+        "view_layer": depsgraph.view_layer.name,
+        "frame": depsgraph.scene.frame_current,
+        "objects": int(objects),
+        "sources": len(mesh.object_names),
+        "instances": instances,
+        "triangles": mesh.triangle_count,
+        "vertices": int(len(mesh.vertices)),
+        "bounds": [lo.tolist(), hi.tolist()],
+        "extraction_seconds": float(elapsed),
+    }
