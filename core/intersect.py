@@ -153,8 +153,8 @@ def intersect(rays: Rays, ray_idx, tri_idx, tri_vertices, t_hi=None, want_uv=Fal
     """Intersect the pairs (rays[ray_idx[k]], triangle tri_idx[k]).
 
     tri_vertices: (T, 3, 3) float32 (``TriangleMesh.tri_vertices``).
-    t_hi: optional (P,) float32 upper bound replacing rays.tmax for these pairs (the
-    current nearest hit), so the kernel reports only hits that could improve it.
+    t_hi: optional (P,) float32 upper bound (the current nearest hit), applied on top of
+    rays.tmax for these pairs, so the kernel reports only hits that could improve it.
     Returns t (P,) float32, +inf where the pair does not hit within (tmin, t_hi];
     with ``want_uv`` also u, v (P,) float32 so that p = (1-u-v) v0 + u v1 + v v2.
     """
@@ -186,7 +186,9 @@ def intersect(rays: Rays, ray_idx, tri_idx, tri_vertices, t_hi=None, want_uv=Fal
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t = np.where(inside, T / det, np.inf).astype(F32, copy=False)
         lo = rays.tmin[ray_idx]
-        hi = rays.tmax[ray_idx] if t_hi is None else t_hi
+        # t_hi narrows (never widens) the ray's own interval: a caller's "best so far"
+        # starts at +inf, and hits beyond tmax must stay out.
+        hi = rays.tmax[ray_idx] if t_hi is None else np.minimum(t_hi, rays.tmax[ray_idx])
         ok = inside & (t > lo) & (t <= hi) & np.isfinite(t)
         t = np.where(ok, t, F32(np.inf))
         if not want_uv:
