@@ -1,0 +1,447 @@
+"""The hybrid decision: grid or a hierarchical structure, for this scene and ray budget.
+
+Hapala, Karlik and Havran (2011), section 3 ("application"):
+  1. build the uniform grid, timed (T_B^G);
+  2. trace K representative rays through it: t_G, the grid's measured time per ray;
+  3. estimate each hierarchical structure H from the calibration:
+     T_B^H ~ c_B N log2 N and t_H ~ c_R log2 N;
+  4. the grid is built already (a sunk cost), so H pays for itself after
+     R*_H = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise (R* = inf);
+  5. keep the grid for R <= R*, else build and use H.
+With several candidates (numpy BVH, Embree) the grid stays cheapest exactly while
+R <= min_H R*_H, and beyond that the candidate with the least T_B^H + R t_H wins.  The
+calibration's spread gives each R* an interval: R*_low uses the low constants (cheap
+build, fast rays), R*_high the high ones, so R*_low <= R* <= R*_high.
+
+Online mode (``trace_online``), which needs no ray count: trace with the grid in batches
+and switch to H once the grid's accumulated trace time reaches H's estimated build
+time, the ski-rental rule (Karlin et al. 1988), which is never worse than about twice
+the best fixed choice in hindsight.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .accel import Accel, build
+from .calibration import Calibration, _prepare, available_kinds, load_default, time_trace
+from .hits import Hits
+from .mesh import TriangleMesh
+
+#: default number of sample rays traced through the grid (item 4's report revisits it)
+DEFAULT_SAMPLES = 16384
+#: default rays per batch in the online mode
+DEFAULT_BATCH = 1 << 15
+DECISIONS = ("GRID", "BVH", "EMBREE")
+
+
+def _check_expected(expected_rays) -> float:
+    try:
+        r = float(expected_rays)
+    except (TypeError, ValueError):
+        raise ValueError(f"expected_rays must be a number of rays, got {expected_rays!r}") from None
+    if not r > 0 or not math.isfinite(r):
+        raise ValueError(f"expected_rays must be a positive finite number of rays, got {expected_rays!r}")
+    return r
+
+
+def _json_float(x):
+    """inf (and NaN) as None: JSON has no infinity; null in a break-even means 'never'."""
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+@dataclass
+class Candidate:
+    """One structure's cost figures: measured for the grid, estimated for the others.
+
+    break_even*: rays after which this structure beats the (already built) grid; inf
+    when it never does; None for the grid itself.
+    """
+
+    kind: str
+    build_time: float
+    build_low: float
+    build_high: float
+    per_ray: float
+    per_ray_low: float
+    per_ray_high: float
+    measured: bool
+    break_even: float | None = None
+    break_even_low: float | None = None
+    break_even_high: float | None = None
+
+    def total_time(self, rays, bound: str = "point", include_build: bool = True):
+        """T_build + R t_ray with the point, 'low' or 'high' figures (R may be an array)."""
+        b, t = {"point": (self.build_time, self.per_ray), "low": (self.build_low, self.per_ray_low),
+                "high": (self.build_high, self.per_ray_high)}[bound]
+        return (b if include_build else 0.0) + np.asarray(rays, np.float64) * t
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__)
+        for k in ("break_even", "break_even_low", "break_even_high"):
+            d[k] = _json_float(d[k])
+        return d
+
+
+def _break_even(build_time, t_grid, t_hds) -> float:
+    """R* = T_B^H / (t_G - t_H), inf when the grid is at least as fast per ray."""
+    return build_time / (t_grid - t_hds) if t_grid > t_hds else math.inf
+
+
+@dataclass
+class Plan:
+    """Everything the decision used and decided.  Times in seconds.
+
+    decision: 'GRID', 'BVH' or 'EMBREE'.
+    break_even: the ray count up to which the grid is cheapest (min over the candidates
+    of their R*), with its interval and the candidate that attains it; inf when no
+    candidate ever beats the grid.
+    estimate_time: what the estimate itself cost beyond the grid build: tracing the K
+    sample rays plus the arithmetic.  plan_time: the whole ``plan()`` call (grid build,
+    samples, arithmetic).
+    """
+
+    triangles: int
+    expected_rays: float
+    samples: int
+    grid_build_time: float
+    grid_per_ray: float
+    candidates: dict[str, Candidate]
+    break_even: float
+    break_even_low: float
+    break_even_high: float
+    break_even_kind: str | None
+    decision: str
+    certain: bool
+    estimate_time: float = 0.0
+    plan_time: float = 0.0
+    grid_reused: bool = False
+    calibration_source: str = ""
+    notes: list[str] = field(default_factory=list)
+    #: what ``trace`` did: kind, build_time (0 for a reused grid), trace_time, rays
+    executed: list[dict] = field(default_factory=list)
+    # not serialised: the objects the plan traces with
+    grid: Accel | None = field(default=None, repr=False)
+    mesh: TriangleMesh | None = field(default=None, repr=False)
+    configs: dict = field(default_factory=dict, repr=False)
+    structure: Accel | None = field(default=None, repr=False)
+
+    @property
+    def chosen(self) -> str:
+        return self.decision.lower()
+
+    def total_time(self, kind: str, rays, bound: str = "point", include_grid_build: bool = False):
+        """Predicted time to shoot ``rays`` rays with ``kind``: R t_G for the grid (its build
+        is sunk unless ``include_grid_build``), T_B + R t for the others."""
+        c = self.candidates[kind]
+        if kind == "grid":
+            return c.total_time(rays, bound, include_build=include_grid_build)
+        return c.total_time(rays, bound)
+
+    def to_dict(self) -> dict:
+        """JSON-able figures.  Infinite break-evens are written as null ("never")."""
+        return {
+            "triangles": self.triangles, "expected_rays": self.expected_rays, "samples": self.samples,
+            "grid_build_time": self.grid_build_time, "grid_per_ray": self.grid_per_ray,
+            "candidates": {k: c.to_dict() for k, c in self.candidates.items()},
+            "break_even": _json_float(self.break_even), "break_even_low": _json_float(self.break_even_low),
+            "break_even_high": _json_float(self.break_even_high), "break_even_kind": self.break_even_kind,
+            "decision": self.decision, "certain": self.certain, "estimate_time": self.estimate_time,
+            "plan_time": self.plan_time, "grid_reused": self.grid_reused,
+            "calibration_source": self.calibration_source, "notes": list(self.notes),
+            "executed": [dict(e) for e in self.executed],
+        }
+
+    def summary(self) -> str:
+        """One line for a status bar or a log."""
+        def num(x):
+            return "inf" if not math.isfinite(x) else f"{x:,.0f}"
+
+        head = f"{self.decision} for {self.expected_rays:,.0f} rays on {self.triangles:,} triangles; "
+        if not math.isfinite(self.break_even):
+            return head + "the grid is always cheapest" + (f" (up to {num(self.break_even_low)} at the low end)"
+                                                            if math.isfinite(self.break_even_low) else "")
+        return (head + f"the grid is cheapest up to {num(self.break_even)} rays "
+                f"[{num(self.break_even_low)}, {num(self.break_even_high)}] (vs {self.break_even_kind})")
+
+    # -- shooting the workload --------------------------------------------------------------
+    def accel(self) -> Accel:
+        """The chosen structure: the plan's grid when it wins, else built now (once)."""
+        if self.decision == "GRID":
+            if self.grid is None:
+                raise RuntimeError("this plan holds no grid (made from timings only); use plan() to trace")
+            return self.grid
+        if self.structure is None:
+            if self.mesh is None:
+                raise RuntimeError("this plan holds no mesh (made from timings only); use plan() to trace")
+            self.structure = build(self.mesh, self.chosen, **self.configs.get(self.chosen, {}))
+            self.executed.append({"kind": self.chosen, "build_time": self.structure.build_time, "trace_time": 0.0, "rays": 0})
+        return self.structure
+
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
+        """Shoot the workload with the chosen structure (building a BVH only when chosen)."""
+        acc = self.accel()
+        t0 = time.perf_counter()
+        hits = acc.trace(origins, directions, tmin, tmax)
+        self.executed.append({"kind": acc.kind, "build_time": 0.0, "trace_time": time.perf_counter() - t0, "rays": len(hits)})
+        return hits
+
+
+def trace_planned(plan: Plan, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
+    """``plan.trace(...)``: the workload through the structure the plan chose."""
+    return plan.trace(origins, directions, tmin, tmax)
+
+
+def plan_from_timings(
+    triangles: int,
+    expected_rays,
+    calibration: Calibration,
+    grid_build_time: float,
+    grid_per_ray: float,
+    *,
+    kinds=("grid", "bvh", "embree"),
+    samples: int = 0,
+    notes=(),
+) -> Plan:
+    """The plan's arithmetic alone, from a measured grid and the calibration.
+
+    Pure: no structure is built or traced, so tests can check the break-even on known
+    numbers.  ``kinds`` other than 'grid' are candidates; those the calibration has no
+    constants for are skipped with a note.
+    """
+    r = _check_expected(expected_rays)
+    notes = list(notes)
+    n = int(triangles)
+    cands = {"grid": Candidate("grid", grid_build_time, grid_build_time, grid_build_time,
+                               grid_per_ray, grid_per_ray, grid_per_ray, measured=True)}
+    for kind in kinds:
+        if kind == "grid":
+            continue
+        if kind not in calibration.fits:
+            notes.append(f"{kind} skipped: no calibration constants for it (calibrated: {', '.join(calibration.fits) or 'none'})")
+            continue
+        e = calibration.estimate(kind, n)
+        cands[kind] = Candidate(
+            kind, e.build, e.build_low, e.build_high, e.per_ray, e.per_ray_low, e.per_ray_high, measured=False,
+            break_even=_break_even(e.build, grid_per_ray, e.per_ray),
+            # the low end: cheap build and fast rays; the high end: dear build, slow rays
+            break_even_low=_break_even(e.build_low, grid_per_ray, e.per_ray_low),
+            break_even_high=_break_even(e.build_high, grid_per_ray, e.per_ray_high),
+        )
+    hds = [c for k, c in cands.items() if k != "grid"]
+    if n == 0:
+        notes.append("empty scene: nothing to accelerate, the grid (empty) answers every ray")
+        hds = []
+    if hds:
+        first = min(hds, key=lambda c: (c.break_even, c.kind))
+        be, be_kind = first.break_even, first.kind
+        be_low = min(c.break_even_low for c in hds)
+        be_high = min(c.break_even_high for c in hds)
+    else:
+        be, be_low, be_high, be_kind = math.inf, math.inf, math.inf, None
+    if r <= be:
+        decision = "grid"  # ties go to the grid: nothing more to build
+    else:
+        decision = min(hds, key=lambda c: (float(c.total_time(r)), c.kind)).kind
+    certain = not (be_low <= r <= be_high)
+    if not certain:
+        notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
+    return Plan(
+        triangles=n, expected_rays=r, samples=int(samples), grid_build_time=float(grid_build_time),
+        grid_per_ray=float(grid_per_ray), candidates=cands, break_even=be, break_even_low=be_low,
+        break_even_high=be_high, break_even_kind=be_kind, decision=decision.upper(), certain=certain,
+        calibration_source=calibration.source, notes=notes,
+    )
+
+
+def _sample_rays(mesh, rays, k, seed):
+    """K representative rays: a random subset of the user's rays, else the paper's uniform ones."""
+    from .rays import uniform_rays
+
+    rng = np.random.default_rng(seed)
+    if rays is not None and len(rays[0]) == 0:
+        rays = None  # an empty workload says nothing about the grid: sample uniformly
+    if rays is None:
+        o, d = uniform_rays(mesh, k, seed=rng)
+        return o, d, 0.0, np.inf, "uniform"
+    rays = tuple(rays)
+    if len(rays) not in (2, 4):
+        raise ValueError("rays must be (origins, directions) or (origins, directions, tmin, tmax)")
+    o, d = np.asarray(rays[0]), np.asarray(rays[1])
+    tmin, tmax = (rays[2], rays[3]) if len(rays) == 4 else (0.0, np.inf)
+    m = len(o)
+    idx = np.sort(rng.choice(m, size=k, replace=False)) if k < m else np.arange(m)
+
+    def pick(x):
+        x = np.asarray(x)
+        return x[idx] if x.ndim == 1 and len(x) == m else x
+
+    return o[idx], d[idx], pick(tmin), pick(tmax), "the given rays"
+
+
+def plan(
+    mesh: TriangleMesh,
+    expected_rays,
+    calibration: Calibration | None = None,
+    *,
+    rays=None,
+    samples: int = DEFAULT_SAMPLES,
+    grid: Accel | None = None,
+    kinds=("grid", "bvh", "embree"),
+    grid_config: dict | None = None,
+    configs: dict | None = None,
+    seed: int = 0,
+) -> Plan:
+    """Build (or reuse) the grid, time K sample rays through it, and decide.
+
+    calibration: from ``calibration.load_or_default``; None uses the shipped defaults.
+    rays: the workload's own rays, (origins, directions[, tmin, tmax]); K of them are
+    sampled.  Without it K uniform random rays (the paper's distribution) are used.
+    grid: an already built grid over ``mesh`` to reuse (its build time is reported).
+    grid_config / configs: build options for the grid / {kind: options} for the others.
+    """
+    t0 = time.perf_counter()
+    _check_expected(expected_rays)
+    if "grid" not in kinds:
+        raise ValueError(f"plan() measures the grid and decides against it: kinds must include 'grid', got {tuple(kinds)}")
+    notes = []
+    if calibration is None:
+        calibration = load_default()
+        notes.append(f"no calibration given: using {calibration.source}")
+    kinds, skipped = available_kinds(kinds)
+    notes += skipped
+    k = max(1, int(samples))
+    _prepare(mesh)
+    if grid is None:
+        grid = build(mesh, "grid", **(grid_config or {}))
+        reused = False
+    else:
+        if getattr(grid, "mesh", None) is not mesh:
+            raise ValueError("the grid passed to plan() was built over another mesh")
+        reused = True
+    t1 = time.perf_counter()
+    if mesh.triangle_count:
+        o, d, tmin, tmax, what = _sample_rays(mesh, rays, k, seed)
+        _, dt = time_trace(grid, o, d, tmin, tmax)
+        k = len(o)
+        t_grid = dt / max(k, 1)
+    else:
+        k, t_grid, what = 0, 0.0, "none"
+    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), t_grid,
+                          kinds=kinds, samples=k, notes=notes)
+    if rays is not None or k:
+        p.notes.append(f"grid time per ray from {k:,} sample rays ({what})")
+    if reused:
+        p.notes.append("grid reused (built before this plan)")
+    p.estimate_time = time.perf_counter() - t1
+    p.plan_time = time.perf_counter() - t0
+    p.grid_reused = reused
+    p.grid, p.mesh, p.configs = grid, mesh, dict(configs or {})
+    return p
+
+
+# -- online mode -------------------------------------------------------------------------------
+
+@dataclass
+class OnlineRecord:
+    """What ``trace_online`` did.  Times in seconds from the given clock.
+
+    switch_ray: rays traced with the grid before the switch (None when it never switched).
+    """
+
+    kind: str
+    rays: int
+    batch: int
+    estimated_build_time: float
+    switched: bool = False
+    switch_ray: int | None = None
+    grid_build_time: float | None = None
+    grid_trace_time: float = 0.0
+    hds_build_time: float = 0.0
+    hds_trace_time: float = 0.0
+    total_time: float = 0.0
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-able; an infinite estimated build (no constants) is written as null."""
+        d = dict(self.__dict__)
+        d["estimated_build_time"] = _json_float(d["estimated_build_time"])
+        return d
+
+
+def trace_online(
+    mesh: TriangleMesh,
+    origins,
+    directions,
+    calibration: Calibration | None = None,
+    *,
+    grid: Accel | None = None,
+    kind: str = "bvh",
+    batch: int = DEFAULT_BATCH,
+    tmin=0.0,
+    tmax=np.inf,
+    grid_config: dict | None = None,
+    config: dict | None = None,
+    clock=time.perf_counter,
+    builder=build,
+) -> tuple[Hits, OnlineRecord]:
+    """Trace with the grid in batches; switch to ``kind`` once the grid's accumulated trace
+    time reaches ``kind``'s estimated build time (ski rental).  Needs no ray count.
+
+    It switches only while the estimate says ``kind`` is faster per ray than the grid has
+    measured so far (else building it could never pay).  ``clock`` and ``builder`` are
+    seams for tests (a fake clock, fake structures).
+    """
+    o = np.asarray(origins)
+    d = np.asarray(directions)
+    m = len(o)
+    batch = max(1, int(batch))
+    if calibration is None:
+        calibration = load_default()
+    t_start = clock()
+    est = calibration.estimate(kind, mesh.triangle_count) if kind in calibration.fits else None
+    rec = OnlineRecord(kind, m, batch, est.build if est else math.inf)
+    if est is None:
+        rec.note = f"no calibration constants for {kind!r}: the grid traces everything"
+    elif kind == "embree" and not available_kinds(("embree",))[0]:
+        est, rec.estimated_build_time, rec.note = None, math.inf, "embreex is not installed: the grid traces everything"
+    if grid is None:
+        c0 = clock()
+        grid = builder(mesh, "grid", **(grid_config or {}))
+        rec.grid_build_time = clock() - c0
+
+    def per_ray(x, a, b):
+        x = np.asarray(x)
+        return x[a:b] if x.ndim == 1 and len(x) == m else x
+
+    out = Hits.empty(m)
+
+    def put(h, a, b):
+        out.t[a:b], out.triangle[a:b], out.u[a:b], out.v[a:b] = h.t, h.triangle, h.u, h.v
+
+    done = 0
+    while done < m:
+        b = min(m, done + batch)
+        c0 = clock()
+        put(grid.trace(o[done:b], d[done:b], per_ray(tmin, done, b), per_ray(tmax, done, b)), done, b)
+        rec.grid_trace_time += clock() - c0
+        done = b
+        if done < m and est is not None and rec.grid_trace_time >= rec.estimated_build_time:
+            if est.per_ray >= rec.grid_trace_time / done:
+                rec.note = f"{kind} would not be faster per ray than the grid: not switching"
+                est = None
+                continue
+            c0 = clock()
+            hds = builder(mesh, kind, **(config or {}))
+            rec.hds_build_time = clock() - c0
+            rec.switched, rec.switch_ray = True, done
+            c0 = clock()
+            put(hds.trace(o[done:], d[done:], per_ray(tmin, done, m), per_ray(tmax, done, m)), done, m)
+            rec.hds_trace_time = clock() - c0
+            done = m
+    rec.total_time = clock() - t_start
+    return out, rec

@@ -1,0 +1,307 @@
+"""Calibration: the fit is the paper's formula, files round-trip, and bad files never crash.
+
+Also the procedural scenes the calibration runs on (core/scenes.py): deterministic,
+the size asked for, closed where they should be.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+
+import numpy as np
+import pytest
+
+from hybrid_raycast.core import calibration as C
+from hybrid_raycast.core import scenes as S
+from hybrid_raycast.core.calibration import (
+    CALIBRATION_FORMAT,
+    Calibration,
+    CalibrationError,
+    KindFit,
+    Measurement,
+    SceneRecord,
+    calibrate,
+    fit,
+    load,
+    load_default,
+    load_or_default,
+)
+
+HAVE = {k: importlib.util.find_spec(f"hybrid_raycast.core.{k}") is not None for k in ("grid", "bvh")}
+
+
+def hand_calibration(**kw) -> Calibration:
+    fits = {"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}
+    rec = SceneRecord("a", 1000, 100, {"bvh": Measurement(0.01, 0.02, 100, 2), "grid": Measurement(0.005, 0.03, 100, 2)})
+    return Calibration(fits, scenes=[rec], source="hand", created="2026-01-01T00:00:00+00:00", **kw)
+
+
+# -- the fit -------------------------------------------------------------------------------------
+
+def test_fit_is_the_mean_of_per_scene_ratios_with_an_interval_around_it():
+    # c_B(i) = T_B / (N log2 N), c_R(i) = T_R / (M log2 N): paper, section 3
+    recs = [
+        SceneRecord("s1", 1024, 1000, {"bvh": Measurement(1024 * 10 * 1e-7, 1000 * 10 * 2e-7, 1000)}),
+        SceneRecord("s2", 4096, 2000, {"bvh": Measurement(4096 * 12 * 3e-7, 2000 * 12 * 4e-7, 2000)}),
+        SceneRecord("s3", 256, 500, {"bvh": Measurement(256 * 8 * 5e-7, 500 * 8 * 9e-7, 500)}),
+    ]
+    f = fit(recs, ["bvh"])["bvh"]
+    assert f.c_B == pytest.approx(3e-7, rel=1e-12), f"c_B should be the mean of 1e-7, 3e-7, 5e-7, got {f.c_B}"
+    assert f.c_R == pytest.approx(5e-7, rel=1e-12), f"c_R should be the mean of 2e-7, 4e-7, 9e-7, got {f.c_R}"
+    assert f.c_B_low == pytest.approx(np.percentile([1e-7, 3e-7, 5e-7], 10))
+    assert f.c_R_high == pytest.approx(np.percentile([2e-7, 4e-7, 9e-7], 90))
+    assert f.c_B_low <= f.c_B <= f.c_B_high and f.c_R_low <= f.c_R <= f.c_R_high
+    assert f.scenes == 3
+
+
+def test_interval_always_contains_the_mean_even_with_an_outlier():
+    recs = [SceneRecord(f"s{i}", 1024, 100, {"bvh": Measurement(1024 * 10 * v, 100 * 10 * v, 100)})
+            for i, v in enumerate([1e-7] * 19 + [1e-4])]
+    f = fit(recs, ["bvh"])["bvh"]
+    assert f.c_B_low <= f.c_B <= f.c_B_high, f"mean {f.c_B} outside [{f.c_B_low}, {f.c_B_high}]"
+
+
+def test_unknown_model_is_refused_by_name():
+    with pytest.raises(ValueError, match="unknown calibration model 'cubic'"):
+        fit([], ["bvh"], model="cubic")
+
+
+def test_estimate_is_c_B_N_log2_N_and_c_R_log2_N():
+    cal = hand_calibration()
+    e = cal.estimate("bvh", 1024)
+    assert e.build == pytest.approx(2e-7 * 1024 * 10) and e.per_ray == pytest.approx(3e-7 * 10)
+    assert (e.build_low, e.build_high) == pytest.approx((1e-7 * 10240, 4e-7 * 10240))
+    assert (e.per_ray_low, e.per_ray_high) == pytest.approx((2e-6, 5e-6))
+    with pytest.raises(KeyError, match="embree"):
+        cal.estimate("embree", 1024)
+
+
+# -- files ---------------------------------------------------------------------------------------
+
+def test_save_and_load_round_trip_every_field(tmp_path):
+    cal = hand_calibration(notes=["a note"], rays_per_scene=100, scale="custom", duration_s=1.5)
+    path = cal.save(tmp_path / "sub" / "cal.json")
+    back = load(path)
+    assert back.to_dict() == cal.to_dict(), "a saved calibration should load back unchanged"
+    assert back.estimate("bvh", 5000) == cal.estimate("bvh", 5000)
+    assert back.scenes[0].c_B("bvh") == cal.scenes[0].c_B("bvh")
+
+
+def test_missing_file_is_a_calibration_error_naming_the_path(tmp_path):
+    with pytest.raises(CalibrationError, match="no calibration file at .*nothere.json"):
+        load(tmp_path / "nothere.json")
+
+
+@pytest.mark.parametrize("text, reason", [
+    ("{not json", "not valid JSON"),
+    ("", "not valid JSON"),
+    ("[1, 2, 3]", "expected a JSON object"),
+    ('{"fits": {}}', "no version information"),
+])
+def test_corrupt_file_is_a_one_line_calibration_error(tmp_path, text, reason):
+    p = tmp_path / "cal.json"
+    p.write_text(text)
+    with pytest.raises(CalibrationError) as err:
+        load(p)
+    assert reason in str(err.value), f"expected {reason!r} in {str(err.value)!r}"
+    assert "\n" not in str(err.value), "the reason should be one line"
+
+
+def test_truncated_file_is_refused(tmp_path):
+    p = tmp_path / "cal.json"
+    p.write_text(hand_calibration().to_json()[:-40])
+    with pytest.raises(CalibrationError, match="not valid JSON"):
+        load(p)
+
+
+def _edit(tmp_path, change):
+    d = hand_calibration().to_dict()
+    change(d)
+    p = tmp_path / "cal.json"
+    p.write_text(json.dumps(d))
+    return p
+
+
+@pytest.mark.parametrize("field, value, where", [
+    ("numpy", "0.0.1", "numpy"),
+    ("package", "9.9.9", "package"),
+    ("python", "2.7", "python"),
+])
+def test_foreign_version_is_refused_naming_what_differs(tmp_path, field, value, where):
+    p = _edit(tmp_path, lambda d: d["version"].__setitem__(field, value))
+    with pytest.raises(CalibrationError, match=f"another setup: {where} '{value}' in the file"):
+        load(p)
+
+
+def test_foreign_machine_is_refused(tmp_path):
+    p = _edit(tmp_path, lambda d: d["version"]["machine"].__setitem__("cpus", 999))
+    with pytest.raises(CalibrationError, match="machine.cpus 999 in the file"):
+        load(p)
+
+
+def test_other_format_is_refused_even_without_version_checks(tmp_path):
+    p = _edit(tmp_path, lambda d: d["version"].__setitem__("format", CALIBRATION_FORMAT + 1))
+    with pytest.raises(CalibrationError, match="calibration format"):
+        load(p, check_version=False)
+
+
+@pytest.mark.parametrize("change, reason", [
+    (lambda d: d["fits"]["bvh"].__setitem__("c_B", -1.0), "not finite non-negative"),
+    (lambda d: d["fits"]["bvh"].__setitem__("c_R", None), "not finite non-negative"),
+    (lambda d: d["fits"]["bvh"].__setitem__("c_B_high", 1e-9), "does not contain"),
+    (lambda d: d["fits"]["bvh"].pop("c_R"), "malformed"),
+    (lambda d: d.__setitem__("fits", {}), "no fitted constants"),
+    (lambda d: d.__setitem__("model", "cubic"), "unknown model"),
+])
+def test_nonsense_constants_are_refused(tmp_path, change, reason):
+    with pytest.raises(CalibrationError, match=reason):
+        load(_edit(tmp_path, change))
+
+
+def test_shipped_defaults_load_and_are_labelled():
+    assert C.DEFAULT_PATH.is_file(), f"the shipped defaults are missing: {C.DEFAULT_PATH}"
+    cal = load_default()
+    assert cal.source == "shipped defaults", f"shipped defaults came back as {cal.source!r}: {cal.notes}"
+    assert "bvh" in cal.fits and len(cal.scenes) >= 8, f"shipped defaults fit {cal.kinds} on {len(cal.scenes)} scenes"
+
+
+@pytest.mark.parametrize("make, reason", [
+    (lambda p: None, "no calibration file"),
+    (lambda p: p.write_text("{garbage"), "not valid JSON"),
+    (lambda p: p.write_bytes(b"\xff\xfe\x00garbage"), "cal.json"),
+    (lambda p: p.write_text(json.dumps({**hand_calibration().to_dict(), "version": {**C.current_version(), "numpy": "0.1"}})),
+     "another setup"),
+    (lambda p: p.mkdir(), "cannot read"),
+])
+def test_load_or_default_falls_back_to_labelled_defaults_with_a_message(tmp_path, make, reason):
+    p = tmp_path / "cal.json"
+    make(p)
+    cal, msg = load_or_default(p)
+    assert cal.source == "shipped defaults", f"fallback should be labelled, got {cal.source!r}"
+    assert reason in msg and "shipped defaults" in msg, f"message {msg!r} should give the reason ({reason!r}) and the fallback"
+
+
+def test_load_or_default_loads_a_good_file(tmp_path):
+    p = hand_calibration().save(tmp_path / "cal.json")
+    cal, msg = load_or_default(p)
+    assert cal.source == "hand" and "loaded calibration" in msg
+
+
+def test_load_or_default_recalibrates_when_asked_and_saves(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_calibrate(progress=None, **kw):
+        calls.append(kw)
+        return hand_calibration()
+
+    monkeypatch.setattr(C, "calibrate", fake_calibrate)
+    p = tmp_path / "cal.json"
+    cal, msg = load_or_default(p, recalibrate=True, scale="tiny")
+    assert calls == [{"scale": "tiny"}], f"calibrate called with {calls}"
+    assert "no calibration file" in msg and "recalibrated" in msg and str(p) in msg, msg
+    assert load(p).to_dict() == cal.to_dict(), "the fresh calibration should be saved where it was asked for"
+
+
+def test_load_or_default_survives_a_failing_recalibration(tmp_path, monkeypatch):
+    def broken(**kw):
+        raise RuntimeError("no structures today")
+
+    monkeypatch.setattr(C, "calibrate", broken)
+    cal, msg = load_or_default(tmp_path / "cal.json", recalibrate=True)
+    assert cal.source == "shipped defaults" and "recalibration failed" in msg and "no structures today" in msg, msg
+
+
+def test_unusable_shipped_defaults_give_a_labelled_builtin_fallback(tmp_path, monkeypatch):
+    monkeypatch.setattr(C, "DEFAULT_PATH", tmp_path / "gone.json")
+    cal, msg = load_or_default(None)
+    assert cal.source == "built-in fallback" and "bvh" in cal.fits, f"{cal.source}: {msg}"
+    assert "no calibration file" in cal.notes[0]
+
+
+# -- a real (small) calibration run ---------------------------------------------------------------
+
+def test_calibrate_measures_fits_and_reports_progress_to_one():
+    # brute force needs no other module: this checks the mechanics, not the constants
+    seen = []
+    scenes = [("sphere", S.sphere(80)), ("soup", lambda: S.soup(60, seed=1))]
+    cal = calibrate(scenes, kinds=("brute",), rays_per_scene=40, grid=False, progress=lambda f, m: seen.append((f, m)))
+    fr = [f for f, _ in seen]
+    assert fr == sorted(fr) and fr[0] == 0.0 and fr[-1] == 1.0, f"progress fractions should rise to 1: {fr}"
+    assert all(isinstance(m, str) and m for _, m in seen)
+    assert [r.name for r in cal.scenes] == ["sphere", "soup"] and cal.scenes[1].triangles == 60
+    f = cal.fits["brute"]
+    assert f.c_B == pytest.approx(np.mean([r.c_B("brute") for r in cal.scenes]))
+    assert f.c_R == pytest.approx(np.mean([r.c_R("brute") for r in cal.scenes]))
+    assert cal.source == "measured" and cal.rays_per_scene == 40 and cal.version == C.current_version()
+    assert Calibration.from_json(cal.to_json()).to_dict() == cal.to_dict()
+
+
+def test_calibrate_skips_embree_with_a_note_when_embreex_is_missing(monkeypatch):
+    from hybrid_raycast.core import embree
+
+    monkeypatch.setattr(embree, "embree_available", lambda: False)
+    cal = calibrate([("s", S.sphere(80))], kinds=("brute", "embree"), rays_per_scene=10, grid=False)
+    assert "embree" not in cal.fits and any("embreex is not installed" in n for n in cal.notes), cal.notes
+
+
+@pytest.mark.skipif(not (HAVE["grid"] and HAVE["bvh"]), reason="core/grid.py or core/bvh.py not written yet")
+def test_calibrate_tiny_set_records_the_grid_but_fits_only_the_candidates():
+    cal = calibrate(S.calibration_set("tiny")[:3], kinds=("bvh",), rays_per_scene=200)
+    assert set(cal.fits) == {"bvh"}, f"fitted {set(cal.fits)}"
+    for r in cal.scenes:
+        assert set(r.kinds) == {"grid", "bvh"}, f"{r.name} measured {set(r.kinds)}"
+        assert all(m.build_time > 0 and m.trace_time > 0 for m in r.kinds.values())
+
+
+@pytest.mark.skipif(not (HAVE["grid"] and HAVE["bvh"]), reason="core/grid.py or core/bvh.py not written yet")
+def test_measure_break_even_uses_the_estimates_formula_on_measured_times():
+    be = C.measure_break_even(S.torus(2000), 500, kinds=("grid", "bvh"))
+    g, b = be.measurements["grid"], be.measurements["bvh"]
+    want = b.build_time / (g.per_ray - b.per_ray) if g.per_ray > b.per_ray else math.inf
+    assert be.R_C["bvh"] == want and be.rays == 500 and be.triangles == S.torus(2000).triangle_count
+
+
+# -- the procedural scenes -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", list(S.SCENES))
+def test_scenes_are_deterministic_and_near_the_size_asked(name):
+    for n in (500, 20000):
+        a, b = S.make_scene(name, n, seed=3), S.make_scene(name, n, seed=3)
+        assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.triangles, b.triangles), f"{name} not deterministic"
+        assert 0.75 * n <= a.triangle_count <= 1.25 * n, f"{name}({n}) has {a.triangle_count} triangles"
+        assert a.valid.all(), f"{name}({n}) has {(~a.valid).sum()} degenerate triangles"
+    other = S.make_scene(name, 500, seed=4)
+    assert not np.array_equal(other.vertices, S.make_scene(name, 500, seed=3).vertices), f"{name}: seeds 3 and 4 give the same mesh"
+
+
+@pytest.mark.parametrize("make", [lambda: S.sphere(3000), lambda: S.torus(3000), lambda: S.subdivide(S.sphere(200))])
+def test_closed_scenes_share_every_edge_with_opposite_winding(make):
+    m = make()
+    f = m.triangles.astype(np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    fwd = {tuple(x) for x in e}
+    assert len(fwd) == len(e), "a directed edge appears twice: inconsistent winding"
+    missing = [x for x in fwd if (x[1], x[0]) not in fwd]
+    assert not missing, f"{len(missing)} edges have no opposite half-edge (open mesh), e.g. {missing[:3]}"
+
+
+def test_subdivide_quadruples_and_keeps_the_surface():
+    m = S.torus(800)
+    s = S.subdivide(m)
+    assert s.triangle_count == 4 * m.triangle_count
+    assert s.surface_area() == pytest.approx(m.surface_area(), rel=1e-5)
+
+
+def test_calibration_sets_span_the_sizes_and_have_unique_names():
+    for scale in S.SCALES:
+        names = [n for n, _ in S.calibration_set(scale)]
+        assert len(names) == len(set(names)), f"duplicate names in {scale}: {names}"
+    sizes = [f.args[0] for _, f in S.calibration_set("default")]
+    assert min(sizes) <= 600 and max(sizes) >= 900_000, f"default set spans {min(sizes)}..{max(sizes)}"
+    assert {n.split("-")[0] for n, _ in S.calibration_set("default")} == set(S.SCENES)
+    with pytest.raises(ValueError, match="unknown calibration scale 'huge'"):
+        S.calibration_set("huge")
+    with pytest.raises(ValueError, match="unknown procedural scene 'cube'"):
+        S.make_scene("cube", 10)
