@@ -1,0 +1,518 @@
+"""Uniform grid: O(N) build, 3D-DDA traversal, in pure numpy.
+
+- Resolution: Cleary and Wyvill, "Analysis of an algorithm for fast ray tracing using
+  uniform space subdivision", The Visual Computer 4(2), 1988: about ``density * N``
+  cells, shaped to the scene so cells are near-cubes.
+- References: each triangle's bounding-box cell range, refined by the separating-axis
+  triangle/box test of Akenine-Moeller, "Fast 3D Triangle-Box Overlap Testing",
+  JGT 6(1), 2001; then a counting sort into CSR arrays (``cell_start``, ``cell_tris``).
+- Traversal: Amanatides and Woo, "A Fast Voxel Traversal Algorithm for Ray Tracing",
+  Eurographics 1987, with every live ray of a chunk stepping in lockstep.
+
+Why the result equals brute force hit for hit (same kernel, same tie rule): the kernel
+reports a hit only where the exact ray passes within its float32 slack (about 2u times
+the origin's distance, u = 2**-24) of the triangle, at a t whose ray point is that close
+to it.  Every cell is enlarged by ``delta`` (far above that slack for origins within a
+few scene sizes) when its references are chosen, and a ray stops in a cell only when its
+best t plus ``mu`` (a bound on the kernel's error in t) is at most the cell's exit
+distance.  So any triangle the kernel could report with a t <= the best lies in an
+enlarged cell already visited and was tested.  Equal t across a cell face is covered
+because the comparison is ``<=`` and a point on a face belongs to both enlarged cells.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .accel import Accel
+from .intersect import NearestHits, Rays, intersect
+
+F64 = np.float64
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def grid_resolution(extent, n, density, max_cells):
+    """Cells per axis by Cleary and Wyvill's rule: ``res_i = e_i * (density*n / V)^(1/k)``.
+
+    k counts the axes with extent; an axis that would get less than one cell (flat or
+    thin) gets exactly one and leaves the budget to the others, so a flat scene gets
+    about ``density * n`` cells in its plane.  The total is capped at
+    ``min(max_cells, 2 * density * n)`` (rounding can overshoot; memory must not).
+    """
+    ext = np.asarray(extent, F64)
+    target = max(1.0, float(density) * max(int(n), 1))
+    diag = float(np.sqrt((ext * ext).sum()))
+    res = np.ones(3, F64)
+    active = ext > 1e-9 * diag if diag > 0 else np.zeros(3, bool)
+    while active.any():
+        k = int(active.sum())
+        scale = (target / float(np.prod(ext[active]))) ** (1.0 / k)
+        r = ext * scale
+        thin = active & (r < 1.0)
+        if thin.any():
+            active &= ~thin
+            continue
+        res[active] = r[active]
+        break
+    res = np.maximum(1, np.round(res)).astype(np.int64)
+    cap = max(1, int(min(max_cells, 2 * target)))
+    while int(np.prod(res)) > cap:
+        k = max(1, int((res > 1).sum()))
+        f = (cap / float(np.prod(res))) ** (1.0 / k)
+        res = np.maximum(1, np.minimum(res - 1, np.floor(res * f))).astype(np.int64)
+    return res
+
+
+def _expand(counts, lo, hi):
+    """The virtual pairs [lo, hi) of ``repeat(arange(len(counts)), counts)``.
+
+    Returns (owner, rank): owner index and rank inside the owner's block, so callers
+    can walk huge pair sets in bounded pieces without materialising them.
+    """
+    cum = np.cumsum(counts)
+    first = cum - counts
+    if lo == 0 and hi == int(cum[-1]):
+        owner = np.repeat(np.arange(len(counts)), counts)
+        rank = np.arange(hi, dtype=np.int64) - np.repeat(first, counts)
+        return owner, rank
+    i0 = int(np.searchsorted(cum, lo, side="right"))
+    i1 = int(np.searchsorted(cum, hi - 1, side="right"))
+    cnt = np.clip(cum[i0 : i1 + 1], lo, hi) - np.clip(first[i0 : i1 + 1], lo, hi)
+    owner = np.repeat(np.arange(i0, i1 + 1), cnt)
+    rank = np.arange(lo, hi, dtype=np.int64) - first[owner]
+    return owner, rank
+
+
+def _pieces(counts, cap):
+    """(owner, rank) pieces of at most ``cap`` pairs covering all pairs of ``counts``."""
+    total = int(counts.sum())
+    for lo in range(0, total, cap):
+        yield _expand(counts, lo, min(total, lo + cap))
+
+
+def _radix_order(keys, nkeys):
+    """Stable order of non-negative integer keys < nkeys < 2**32 in O(len(keys)).
+
+    numpy's stable argsort of 16-bit keys is an LSD radix (counting) sort, so two passes
+    over 16-bit digits give a counting sort of 32-bit cell ids without an O(R log R) sort.
+    """
+    if nkeys <= 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable")
+    order = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    high = np.take(keys, order) >> 16
+    high = high.astype(np.uint8 if nkeys <= 1 << 24 else np.uint16)  # one byte pass if it fits
+    return np.take(order, np.argsort(high, kind="stable"))
+
+
+class UniformGrid(Accel):
+    """A uniform grid of about ``density * N`` cells over the valid triangles.
+
+    Config (keyword arguments of ``core.build(mesh, 'grid', ...)``):
+
+    ``density`` (lambda, default 2.0): cells per triangle in Cleary and Wyvill's rule.
+        Measured (single thread, CPU time, 100k uniform rays; torus and random soup):
+        at 100k triangles lambda 0.5/1/2/4/8 trace within noise of each other up to 2
+        and slower beyond (8 is 15-20% slower); at 1M triangles 2 traced fastest by
+        3-7% while 1 builds 20% faster.  The prefilter makes each reference cheap, which
+        pulls the optimum down (without it 4-8 were fastest).
+    ``max_cells`` (default 2**24): memory bound on the cell count (cell_start is one
+        int32 per cell, so 64 MB at the bound).
+    ``margin`` (default 1e-3): each cell is enlarged by ``margin`` times the smallest
+        cell extent when its references are chosen (the grid box is padded by twice
+        that), so neither the kernel's float32 slack nor rounding here can hide a
+        triangle the kernel would report; it costs 1-2% more references.
+    ``pair_cap`` (default 2**17): at most this many (ray, triangle) pairs per kernel
+        call, and candidate (triangle, cell) pairs per overlap batch: bounds memory.
+    ``prefilter`` (default True): before the kernel, drop pairs whose ray line misses
+        the triangle's bounding box enlarged by a bound on the kernel's float32 slack
+        (see ``_box_filter``); most pairs of a cell miss, and the test costs a fraction
+        of the kernel.  The kernel alone still decides every hit.
+    """
+
+    kind = "grid"
+    chunk_size = 1 << 15
+
+    def __init__(self, mesh, *, density: float = 2.0, max_cells: int = 1 << 24, margin: float = 1e-3,
+                 pair_cap: int = 1 << 17, prefilter: bool = True, **kw):
+        if not density > 0:
+            raise ValueError(f"density must be > 0, got {density}")
+        self.density = float(density)
+        self.max_cells = max(1, int(max_cells))
+        self.margin = float(margin)
+        self.pair_cap = max(1, int(pair_cap))
+        self.prefilter = bool(prefilter)
+        super().__init__(mesh, **kw)
+
+    # -- build -----------------------------------------------------------------------
+    #: triangles per build block: keeps the per-triangle temporaries in cache
+    build_block = 1 << 16
+
+    def _build(self):
+        mesh = self.mesh
+        ids = np.flatnonzero(mesh.valid).astype(np.int32)
+        n = len(ids)
+        tv = mesh.tri_vertices if n == mesh.triangle_count else mesh.tri_vertices[ids]
+        # per-triangle float32 boxes, component-major (lo xyz, hi xyz), for _box_filter
+        self._tri_box = np.zeros((6, mesh.triangle_count), np.float32)
+        if n == 0:
+            self.lo = np.zeros(3)
+            self.res = np.ones(3, np.int64)
+            self.cell_size = np.ones(3)
+            self.delta = 0.0
+            self._finish_geometry()
+            self._set_csr(np.zeros(2, np.int32), np.zeros(0, np.int32))
+            return
+        lo = np.array([tv[:, :, k].min() for k in range(3)], F64)
+        hi = np.array([tv[:, :, k].max() for k in range(3)], F64)
+        ext = hi - lo
+        res = grid_resolution(ext, n, self.density, self.max_cells)
+        # delta: a fraction of the smallest real cell extent (flat axes excluded), and
+        # never below float64 rounding of the coordinates themselves.
+        real = ext > 1e-9 * float(np.linalg.norm(ext))
+        mag = float(np.abs(np.concatenate([lo, hi])).max())
+        delta = max(self.margin * float((ext / res)[real].min()), 64 * np.finfo(F64).eps * mag, np.finfo(F64).tiny)
+        # padding by 2*delta keeps every triangle's enlarged box strictly inside the grid,
+        # so the cell ranges below need no clamping
+        pad = 2.0 * delta
+        self.lo = lo - pad
+        self.res = res
+        self.cell_size = (ext + 2 * pad) / res
+        self.delta = delta
+        self._finish_geometry()
+
+        cells, tris = [], []
+        for b0 in range(0, n, self.build_block):
+            b1 = min(n, b0 + self.build_block)
+            self._block_refs(tv[b0:b1], ids[b0:b1], slice(b0, b1) if n == mesh.triangle_count else ids[b0:b1],
+                             cells, tris)
+        ref_cell = np.concatenate(cells)
+        ref_tri = np.concatenate(tris)
+        # Counting sort into CSR: bincount + cumsum for the offsets, radix order to scatter.
+        ncells = self.ncells
+        cell_start = np.zeros(ncells + 1, np.int32 if len(ref_cell) < 2**31 - 1 else np.int64)
+        np.cumsum(np.bincount(ref_cell, minlength=ncells), out=cell_start[1:])
+        self._set_csr(cell_start, np.take(ref_tri, _radix_order(ref_cell, ncells)))
+
+    def _block_refs(self, tv, ids, box_at, cells, tris):
+        """References of one block of triangles: (cell ids, triangle ids) appended to the lists."""
+        tlo = [np.minimum(np.minimum(tv[:, 0, k], tv[:, 1, k]), tv[:, 2, k]) for k in range(3)]
+        thi = [np.maximum(np.maximum(tv[:, 0, k], tv[:, 1, k]), tv[:, 2, k]) for k in range(3)]
+        for k in range(3):
+            self._tri_box[k, box_at] = tlo[k]
+            self._tri_box[3 + k, box_at] = thi[k]
+        # cell range of each triangle's box enlarged by delta (float64: exact enough that
+        # only delta, not rounding, decides)
+        c_lo = self.lo + self.delta
+        c_hi = self.lo - self.delta
+        inv = 1.0 / self.cell_size
+        i0 = [np.floor(np.subtract(tlo[k], c_lo[k], dtype=F64) * inv[k]).astype(np.int64) for k in range(3)]
+        span = [np.floor(np.subtract(thi[k], c_hi[k], dtype=F64) * inv[k]).astype(np.int64) - i0[k] + 1
+                for k in range(3)]
+        multi = [sp > 1 for sp in span]
+        nm = multi[0].astype(np.int8) + multi[1] + multi[2]
+        st = self.stride
+        base = i0[0] + i0[1] * st[1] + i0[2] * st[2]
+        # One cell, or a run of cells along one axis: the box range is exact (the triangle
+        # is connected and lies within one cell on the other axes), no overlap test needed.
+        one = nm == 0
+        cells.append(base[one])
+        tris.append(ids[one])
+        for k in range(3):
+            sel = np.flatnonzero(multi[k] & (nm == 1))
+            if sel.size:
+                b, t = base[sel], ids[sel]
+                for owner, rank in _pieces(span[k][sel], self.pair_cap):
+                    cells.append(b[owner] + rank * st[k])
+                    tris.append(t[owner])
+        # Several cells on two or three axes: separating-axis test per candidate.  The
+        # edge axes in the plane perpendicular to axis k can only separate when the box
+        # spans several cells on both other axes (else the argument above applies to
+        # that projection), so 2-axis spans need one plane of edge axes, 3-axis spans three.
+        for k in range(3):
+            sel = np.flatnonzero((nm == 2) & ~multi[k])
+            if sel.size:
+                self._sat_refs(tv[sel], ids[sel], [i[sel] for i in i0], [sp[sel] for sp in span], (k,), cells, tris)
+        sel = np.flatnonzero(nm == 3)
+        if sel.size:
+            self._sat_refs(tv[sel], ids[sel], [i[sel] for i in i0], [sp[sel] for sp in span], (0, 1, 2), cells, tris)
+
+    def _finish_geometry(self):
+        self.ncells = int(np.prod(self.res))
+        self.hi = self.lo + self.cell_size * self.res
+        self.stride = np.array([1, self.res[0], self.res[0] * self.res[1]], np.int64)
+        # traversal looks cells up with this offset; one step past the box on each axis
+        # stays inside the (empty) padding
+        self._pad = int(self.stride[2] + self.stride[1] + 2)
+
+    def _set_csr(self, cell_start, cell_tris):
+        pad = self._pad
+        full = np.empty(len(cell_start) + 2 * pad, cell_start.dtype)
+        full[:pad] = cell_start[0]
+        full[pad : pad + len(cell_start)] = cell_start
+        full[pad + len(cell_start) :] = cell_start[-1]
+        self.cell_start = full[pad : pad + len(cell_start)]
+        self.cell_tris = cell_tris.astype(np.int32, copy=False)
+        self._starts_lo = full[:-1]
+        self._starts_hi = full[1:]
+
+    def _sat_refs(self, tv, ids, i0, span, planes, cells, tris):
+        """Akenine-Moeller's separating-axis test for (triangle, cell) candidates.
+
+        All cells have the same half size, so per triangle each axis a gives an interval
+        [min_i a.w_i - r_a, max_i a.w_i + r_a] (w_i: corners relative to the centre of
+        the first cell of its range, r_a = sum_k h_k |a_k|) and the candidate at cell
+        offset o passes iff a.(o * cell_size) lies in it.  The box-face axes are the
+        candidate range itself.  float64, with the enlarged half size cell_size/2 + delta.
+        Triangles whose range is at most 4 cells per axis are grouped by range shape and
+        tested by broadcasting over the shape's offsets; larger ones in bounded pieces.
+        """
+        # order the triangles by range shape (key 64: larger than 4 cells on some axis)
+        small = (span[0] <= 4) & (span[1] <= 4) & (span[2] <= 4)
+        key = np.where(small, (span[0] - 1) + 4 * (span[1] - 1) + 16 * (span[2] - 1), 64).astype(np.uint8)
+        order = np.argsort(key, kind="stable")
+        bounds = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=65))])
+        tv, ids = tv[order], ids[order]
+        i0 = [i[order] for i in i0]
+        span = [sp[order] for sp in span]
+
+        cs = self.cell_size
+        h = cs / 2 + self.delta
+        # w[c][k]: corner c, axis k, relative to the first cell's centre (1D arrays)
+        c0 = [self.lo[k] + (i0[k] + 0.5) * cs[k] for k in range(3)]
+        w = [[np.subtract(tv[:, c, k], c0[k], dtype=F64) for k in range(3)] for c in range(3)]
+        e = [[w[(c + 1) % 3][k] - w[c][k] for k in range(3)] for c in range(3)]
+        nrm = [e[0][1] * e[1][2] - e[0][2] * e[1][1],
+               e[0][2] * e[1][0] - e[0][0] * e[1][2],
+               e[0][0] * e[1][1] - e[0][1] * e[1][0]]
+        axes = [nrm]  # the triangle's normal
+        for k in planes:  # unit_k x edge, zero on axis k
+            i, j = (k + 1) % 3, (k + 2) % 3
+            for ed in e:
+                a = [None, None, None]
+                a[i], a[j] = -ed[j], ed[i]
+                axes.append(a)
+        lo_a, hi_a, sc_a = [], [], []
+        for a in axes:
+            ks = [k for k in range(3) if a[k] is not None]
+            proj = [sum(a[k] * w[c][k] for k in ks) for c in range(3)]
+            r = sum(h[k] * np.abs(a[k]) for k in ks)
+            lo_a.append(np.minimum(np.minimum(proj[0], proj[1]), proj[2]) - r)
+            hi_a.append(np.maximum(np.maximum(proj[0], proj[1]), proj[2]) + r)
+            sc_a.append([a[k] * cs[k] if a[k] is not None else None for k in range(3)])
+        st = self.stride
+        base = i0[0] + i0[1] * st[1] + i0[2] * st[2]
+
+        for kk in np.flatnonzero(np.diff(bounds[:65])):
+            g = slice(bounds[kk], bounds[kk + 1])
+            shape = (kk % 4 + 1, kk // 4 % 4 + 1, kk // 16 + 1)
+            off = np.indices(shape[::-1]).reshape(3, -1)[::-1]  # x fastest, like cell ids
+            ok = None
+            for A in range(len(axes)):
+                v = 0.0
+                for k in range(3):
+                    if shape[k] > 1 and sc_a[A][k] is not None:
+                        v = v + sc_a[A][k][g, None] * off[k]
+                t = (v >= lo_a[A][g, None]) & (v <= hi_a[A][g, None])
+                ok = t if ok is None else ok & t
+            r_, c_ = np.nonzero(ok)
+            cells.append(base[g][r_] + (off[:, c_].T @ st))
+            tris.append(ids[g][r_])
+
+        if bounds[64] == bounds[65]:
+            return
+        big = slice(bounds[64], bounds[65])
+        spr = [sp[big] for sp in span]
+        for owner, rank in _pieces(spr[0] * spr[1] * spr[2], self.pair_cap):
+            o = [rank % spr[0][owner], None, None]
+            q = rank // spr[0][owner]
+            o[1] = q % spr[1][owner]
+            o[2] = q // spr[1][owner]
+            g = owner + bounds[64]
+            ok = np.ones(len(owner), bool)
+            for A in range(len(axes)):
+                v = sum(sc_a[A][k][g] * o[k] for k in range(3) if sc_a[A][k] is not None)
+                ok &= (v >= lo_a[A][g]) & (v <= hi_a[A][g])
+            keep = np.flatnonzero(ok)
+            gk = g[keep]
+            cells.append(base[gk] + o[0][keep] + o[1][keep] * st[1] + o[2][keep] * st[2])
+            tris.append(ids[gk])
+
+    # -- traversal ---------------------------------------------------------------------
+    def _setup(self, rays: Rays):
+        """Clip rays to the grid box (slab test), find entry cells, DDA state per live ray.
+
+        Returns F (9, L) float64 rows: t_max x/y/z (parameter of the next boundary per
+        axis), t_delta x/y/z, t_end (leaving the box or tmax), best t + mu, mu; and
+        I (5, L) int64 rows: padded cell id, cell-id step per axis, ray index.
+        Component-major, so each row is a contiguous array and one take compacts all.
+        """
+        o = rays.origins.astype(F64)
+        d = rays.directions.astype(F64)
+        zero = d == 0  # +0.0 and -0.0 alike: never step on that axis (t_delta = inf)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            inv = 1.0 / d
+            t0 = (self.lo - o) * inv
+            t1 = (self.hi - o) * inv
+        inside = (o >= self.lo) & (o <= self.hi)
+        tn = np.where(zero, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
+        tf = np.where(zero, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+        ts = np.maximum(tn.max(axis=1), rays.tmin.astype(F64))
+        te = np.minimum(tf.min(axis=1), rays.tmax.astype(F64))
+        live = np.flatnonzero(ts <= te)
+        o, d, inv, zero, ts, te = o[live], d[live], inv[live], zero[live], ts[live], te[live]
+        res = self.res
+        p = o + ts[:, None] * d
+        # float rounding of the entry point may pick a neighbour cell: harmless, the first
+        # step corrects it and the cells' delta margin covers the sliver in between
+        idx = np.clip(np.floor((p - self.lo) / self.cell_size), 0, res - 1).astype(np.int64)
+        step = np.where(zero, 0, np.where(d > 0, 1, -1)).astype(np.int64)
+        L = len(live)
+        F = np.empty((9, L), F64)
+        I = np.empty((5, L), np.int64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            bnd = self.lo + (idx + (step > 0)) * self.cell_size
+            F[0:3] = np.where(zero, np.inf, (bnd - o) * inv).T
+            F[3:6] = np.where(zero, np.inf, self.cell_size * np.abs(inv)).T
+        F[6] = te
+        F[7] = np.inf
+        # mu: a bound on the kernel's float32 error in t, relative to the largest depth of
+        # a grid point seen from the origin; a hit reported a little early still has its
+        # true point inside a visited cell.
+        far = np.maximum(np.abs(o - self.lo), np.abs(o - self.hi))
+        F[8] = 64 * EPS32 * np.sqrt((far * far).sum(axis=1) / (d * d).sum(axis=1))
+        I[0] = idx @ self.stride + self._pad
+        I[1:4] = (step * self.stride).T
+        I[4] = live
+        return F, I
+
+    def _traverse(self, rays: Rays, any_hit: bool):
+        """Amanatides-Woo 3D-DDA, all live rays of the chunk in lockstep.
+
+        A ray finishes when its segment ends in the current cell (box exit or tmax), when
+        (nearest hit) its best t + mu is at most the cell's exit distance, or (any hit) on
+        its first hit.  Stepping out of the box by float rounding lands in the padding of
+        ``cell_start`` (empty) or in a wrapped-around cell (extra tests never change a
+        nearest hit), and the next check ends the ray.
+        """
+        m = len(rays)
+        tv = self.mesh.tri_vertices
+        best = None if any_hit else NearestHits(m)
+        hit = np.zeros(m, bool)
+        F, I = self._setup(rays)
+        s_lo, s_hi, tris, tmax = self._starts_lo, self._starts_hi, self.cell_tris, rays.tmax
+        R = self._filter_rays(rays) if self.prefilter else None
+
+        def pairs(rr, ss, cc):
+            Rz = None if R is None else np.take(R, rr, axis=1)  # per ray, gathered per pair below
+            for owner, rank in _pieces(cc, self.pair_cap):
+                tri = np.take(tris, np.take(ss, owner) + rank)
+                if Rz is not None:
+                    k = self._box_filter(Rz, owner, tri)
+                    owner, tri = np.take(owner, k), np.take(tri, k)
+                yield owner, np.take(rr, owner), tri
+        while I.shape[1]:
+            s = np.take(s_lo, I[0])
+            cnt = np.take(s_hi, I[0])
+            cnt -= s
+            nz = np.flatnonzero(cnt)
+            found = None
+            if nz.size:
+                rr, ss, cc = np.take(I[4], nz), np.take(s, nz), np.take(cnt, nz)
+                if any_hit:
+                    got = np.zeros(nz.size, bool)
+                    for owner, r, tri in pairs(rr, ss, cc):
+                        t = intersect(rays, r, tri, tv)
+                        got[owner[np.isfinite(t)]] = True
+                    hit[rr[got]] = True
+                    found = np.zeros(I.shape[1], bool)
+                    found[nz[got]] = True
+                else:
+                    bz = np.minimum(best.t(rr), np.take(tmax, rr))
+                    for owner, r, tri in pairs(rr, ss, cc):
+                        best.update(r, tri, intersect(rays, r, tri, tv, t_hi=np.take(bz, owner)))
+                    F[7, nz] = best.t(rr) + np.take(F[8], nz)
+            t_exit = np.minimum(np.minimum(F[0], F[1]), F[2])
+            done = (t_exit >= F[6]) | (F[7] <= t_exit)
+            if found is not None:
+                done |= found
+            n_done = np.count_nonzero(done)
+            if n_done * 8 > done.size:  # compact once enough rays have finished ...
+                keep = np.flatnonzero(~done)
+                F, I, t_exit = np.take(F, keep, axis=1), np.take(I, keep, axis=1), np.take(t_exit, keep)
+            elif n_done:  # ... until then park them: an empty padding cell, never moving
+                k = np.flatnonzero(done)
+                F[0:3, k] = np.inf
+                I[0:4, k] = 0
+            # one step on the axis whose boundary comes first (x, then y, on exact ties)
+            sx = F[0] == t_exit
+            sy = np.greater(F[1] == t_exit, sx)  # and not sx
+            sz = ~(sx | sy)
+            np.add(F[0], F[3], out=F[0], where=sx)
+            np.add(F[1], F[4], out=F[1], where=sy)
+            np.add(F[2], F[5], out=F[2], where=sz)
+            np.add(I[0], I[1], out=I[0], where=sx)
+            np.add(I[0], I[2], out=I[0], where=sy)
+            np.add(I[0], I[3], out=I[0], where=sz)
+        return hit if any_hit else best.finish(rays, tv)
+
+    def _filter_rays(self, rays: Rays):
+        """(7, M) float32 rows: origin xyz, 1/direction xyz, slack eps, for _box_filter."""
+        o = rays.origins
+        far = np.maximum(np.abs(o - self.lo), np.abs(o - self.hi))
+        R = np.empty((7, len(rays)), np.float32)
+        R[0:3] = o.T
+        with np.errstate(divide="ignore", over="ignore"):
+            R[3:6] = (np.float32(1) / rays.directions).T
+        R[6] = 64 * EPS32 * np.sqrt((far * far).sum(axis=1))
+        return R
+
+    def _box_filter(self, R, r, tri):
+        """Indices of the pairs (column r of R, triangle tri) whose ray line meets the
+        triangle's box enlarged by eps; R as made by ``_filter_rays``.
+
+        The kernel can report a hit only where the exact ray passes within about
+        2u|v - o| of the triangle (u = 2**-24: its shear is float32; measured, not just
+        bounded).  eps = 128u times the largest origin-to-grid distance covers that and
+        this float32 slab test's own rounding (each step errs by at most u|v - o|).
+        NaN from 0 * inf (a zero direction component on a box face) keeps the pair:
+        the test is ``not (t_near > t_far)``.
+        """
+        B = self._tri_box
+        e = np.take(R[6], r)
+        t_near = t_far = None
+        with np.errstate(invalid="ignore", over="ignore"):
+            for k in range(3):
+                o = np.take(R[k], r)
+                iv = np.take(R[3 + k], r)
+                a = (np.take(B[k], tri) - o - e) * iv
+                b = (np.take(B[3 + k], tri) - o + e) * iv
+                lo_k, hi_k = np.minimum(a, b), np.maximum(a, b)
+                t_near = lo_k if t_near is None else np.maximum(t_near, lo_k)
+                t_far = hi_k if t_far is None else np.minimum(t_far, hi_k)
+            return np.flatnonzero(~(t_near > t_far))
+
+    def _trace_rays(self, rays: Rays):
+        return self._traverse(rays, any_hit=False)
+
+    def _occluded_rays(self, rays: Rays):
+        return self._traverse(rays, any_hit=True)
+
+    # -- report ------------------------------------------------------------------------
+    def stats(self) -> dict:
+        counts = np.diff(self.cell_start)
+        n_valid = int(self.mesh.valid.sum()) if self.mesh.triangle_count else 0
+        refs = int(len(self.cell_tris))
+        return {
+            **super().stats(),
+            "density": self.density,
+            "resolution": tuple(int(r) for r in self.res),
+            "cells": self.ncells,
+            "references": refs,
+            "refs_per_triangle": refs / n_valid if n_valid else 0.0,
+            "empty_cell_fraction": float((counts == 0).mean()),
+            "max_refs_per_cell": int(counts.max()) if counts.size else 0,
+            "cell_size": tuple(float(c) for c in self.cell_size),
+            "delta": self.delta,
+            "memory_bytes": int(self._starts_lo.nbytes + self.cell_start.itemsize + self.cell_tris.nbytes
+                                + self._tri_box.nbytes),
+        }
