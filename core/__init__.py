@@ -1,11 +1,40 @@
 """Pure-numpy core of Hybrid Ray Cast: meshes, the shared kernel and the structures.
 
 Never imports bpy or mathutils, so everything here runs and is tested without Blender.
+embreex (optional) is imported only when an 'embree' structure is built.
 """
 
 from .accel import KINDS, Accel, build
+from .embree import embree_available
 from .hits import Hits
 from .intersect import prepare_rays
 from .mesh import TriangleMesh
+from .objio import load_obj
+from .rays import camera_rays, hemisphere_rays, uniform_rays
+from .calibration import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
+from .plan import Plan, plan, trace_online, trace_planned
+from .scenes import calibration_set
 
-__all__ = ["KINDS", "Accel", "Hits", "TriangleMesh", "build", "prepare_rays"]
+__all__ = [
+    "KINDS",
+    "Accel",
+    "Hits",
+    "TriangleMesh",
+    "build",
+    "Calibration",
+    "CalibrationError",
+    "Plan",
+    "calibrate",
+    "calibration_set",
+    "load_or_default",
+    "measure_break_even",
+    "plan",
+    "trace_online",
+    "trace_planned",
+    "camera_rays",
+    "embree_available",
+    "hemisphere_rays",
+    "load_obj",
+    "prepare_rays",
+    "uniform_rays",
+]

@@ -1,0 +1,174 @@
+"""Intel Embree (through embreex) behind the same Accel interface, kind 'embree'.
+
+embreex is optional: this module imports it only when a structure is built, and
+``embree_available()`` says whether that will work.  What embreex 4.4 offers, and what
+this wrapper does about it:
+
+- ``rtcore_scene.EmbreeScene(robust=True)`` sets Embree's RTC_SCENE_FLAG_ROBUST
+  (watertight traversal and intersection, at some speed).
+- ``scene.run(origins_f32, dirs_f32, dists=None, query='INTERSECT', output=None)``
+  traces one ray at a time.  ``dists`` is the per-ray tfar (default 1e37; a passed
+  array is overwritten with the hit distances, so we pass a copy).  With ``output=1``
+  it returns a dict of float32 ``u``, ``v``, ``tfar``, ``Ng`` (M, 3) and int32
+  ``primID``, ``geomID`` (-1 on a miss).  ``query='OCCLUDED'`` without ``output``
+  returns int32, -1 where nothing is hit (with ``output`` the dict is garbage).
+- There is no tnear: embreex always traces from 0 and Embree counts a hit at
+  exactly t = tnear, while our convention is tmin < t.  We emulate tmin by moving the
+  origin to ``o + tmin * d`` (in float64, rounded to float32, so the ray the structure
+  sees differs from the caller's by up to an ulp of the origin) and tracing over
+  (0, tmax - tmin]; a hit at exactly the start (t' = 0) is traced again from a start a
+  few ulps further on (at most ``_RESTARTS`` times; after that the ray reports a miss).
+  Both Embree's tfar and ours are inclusive.  A negative tmin is treated as 0: Embree
+  cannot report hits behind the origin.
+- The scene commits (builds its BVH) on the first ``run``; ``_build`` runs one dummy
+  ray so that ``build_time`` includes Embree's build, as the cost model needs.
+
+Triangles that are degenerate (zero area in float64, ``TriangleMesh.valid``) are not
+given to Embree, and Embree's primID is mapped back to the mesh's triangle index.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+
+from .accel import Accel
+from .hits import Hits
+from .intersect import Rays
+
+F32 = np.float32
+#: how often a hit at exactly the (moved) origin is re-traced from a little further on
+_RESTARTS = 4
+
+
+def embree_available() -> bool:
+    """True when embreex can be imported (without importing it)."""
+    try:
+        return importlib.util.find_spec("embreex") is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def _import_embreex():
+    try:
+        from embreex import mesh_construction, rtcore_scene
+    except ImportError as e:  # ModuleNotFoundError, or a broken binary wheel
+        raise RuntimeError(
+            f"embreex is not installed: the 'embree' structure needs it ({e}); "
+            "use kind 'grid', 'bvh' or 'brute', or install embreex"
+        ) from e
+    return rtcore_scene, mesh_construction
+
+
+class EmbreeAccel(Accel):
+    """Embree 4 through embreex.
+
+    Config: ``robust`` (default True): RTC_SCENE_FLAG_ROBUST.  ``threads`` defaults to 1
+    here: embreex traces one ray at a time under the GIL, so threads only add overhead.
+    """
+
+    kind = "embree"
+
+    def __init__(self, mesh, *, robust: bool = True, threads: int | None = 1, **kw):
+        self.robust = bool(robust)
+        super().__init__(mesh, threads=threads, **kw)
+
+    def _build(self):
+        rtcore_scene, mesh_construction = _import_embreex()
+        self.prim_to_triangle = np.flatnonzero(self.mesh.valid).astype(np.int32)
+        self.scene = None
+        if self.prim_to_triangle.size == 0:
+            return
+        self.scene = rtcore_scene.EmbreeScene(robust=self.robust)
+        tri_vertices = np.ascontiguousarray(self.mesh.tri_vertices[self.prim_to_triangle], dtype=F32)
+        # keep a reference: embreex shares the buffer with Embree
+        self._tri_vertices = tri_vertices
+        self._geometry = mesh_construction.TriangleMesh(self.scene, tri_vertices)
+        # force the commit (Embree's BVH build) now, so build_time measures it
+        one = np.zeros((1, 3), F32)
+        self.scene.run(one, one + F32(1.0), dists=np.zeros(1, F32))
+
+    def _run(self, origins, directions, tfar, query):
+        """One embreex call; origins/directions (P, 3) float32, tfar (P,) float32."""
+        o = np.ascontiguousarray(origins, dtype=F32)
+        d = np.ascontiguousarray(directions, dtype=F32)
+        dists = np.ascontiguousarray(tfar, dtype=F32).copy()  # embreex writes into it
+        if query == "OCCLUDED":
+            return self.scene.run(o, d, dists=dists, query="OCCLUDED")
+        return self.scene.run(o, d, dists=dists, output=1)
+
+    def _start(self, rays: Rays):
+        """Each ray's start parameter s (float64): tmin, or 0 where tmin is negative."""
+        s = rays.tmin.astype(np.float64)
+        s = np.where(s > 0, s, 0.0)  # a negative tmin only widens the range: Embree starts at 0
+        return s
+
+    def _moved(self, rays: Rays, idx, s):
+        o = rays.origins[idx].astype(np.float64) + s[:, None] * rays.directions[idx].astype(np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            tfar = rays.tmax[idx].astype(np.float64) - s
+        return o.astype(F32), rays.directions[idx], tfar.astype(F32)
+
+    def _restart_param(self, rays: Rays, idx, s):
+        """A start a few float32 ulps of the origin further along the ray than ``s``."""
+        o = np.abs(rays.origins[idx]).max(axis=1).astype(np.float64)
+        d = np.abs(rays.directions[idx]).max(axis=1).astype(np.float64)
+        step = np.maximum(o / d, 1e-30) * 2.0 ** -21
+        return np.maximum(s * (1 + 2.0 ** -21), s + step)
+
+    def _trace_rays(self, rays: Rays) -> Hits:
+        m = len(rays)
+        out = Hits.empty(m)
+        if self.scene is None:
+            return out
+        s = self._start(rays)
+        todo = np.arange(m)
+        for _ in range(_RESTARTS + 1):
+            o, d, tfar = self._moved(rays, todo, s[todo])
+            live = tfar >= 0
+            r = self._run(o[live], d[live], tfar[live], "INTERSECT")
+            idx = todo[live]
+            prim = r["primID"]
+            hit = prim >= 0
+            at_start = hit & (r["tfar"] <= 0)
+            # rays that hit exactly at their start: the convention excludes t = tmin
+            good = hit & ~at_start
+            g = idx[good]
+            t = (s[g] + r["tfar"][good].astype(np.float64)).astype(F32)
+            out.t[g] = np.minimum(t, rays.tmax[g])  # rounding of s + t' must not pass tmax
+            out.triangle[g] = self.prim_to_triangle[prim[good]]
+            out.u[g] = r["u"][good]
+            out.v[g] = r["v"][good]
+            todo = idx[at_start]
+            if todo.size == 0:
+                break
+            s[todo] = self._restart_param(rays, todo, s[todo])
+        return out
+
+    def _occluded_rays(self, rays: Rays) -> np.ndarray:
+        m = len(rays)
+        hit = np.zeros(m, bool)
+        if self.scene is None:
+            return hit
+        s = self._start(rays)
+        o, d, tfar = self._moved(rays, slice(None), s)
+        live = np.flatnonzero(tfar >= 0)
+        occ = live[self._run(o[live], d[live], tfar[live], "OCCLUDED") != -1]
+        # Embree also counts a hit at exactly the start (t = tmin, which we exclude):
+        # ask again from a few ulps further on, and settle the rest with a nearest-hit trace
+        s2 = self._restart_param(rays, occ, s[occ])
+        o2, d2, tfar2 = self._moved(rays, occ, s2)
+        live2 = tfar2 >= 0
+        sure = np.zeros(occ.size, bool)
+        sure[live2] = self._run(o2[live2], d2[live2], tfar2[live2], "OCCLUDED") != -1
+        hit[occ[sure]] = True
+        unsure = occ[~sure]
+        if unsure.size:
+            hit[unsure] = self._trace_rays(rays.subset(unsure)).hit
+        return hit
+
+    def stats(self) -> dict:
+        st = super().stats()
+        st.update(robust=self.robust, embree_triangles=int(self.prim_to_triangle.size))
+        return st

@@ -1,0 +1,133 @@
+"""core/embree.py: Embree through embreex behind the common interface.
+
+What embreex cannot do itself (tnear, degenerate triangles, index mapping) is
+emulated by the wrapper; these tests pin that emulation down.
+"""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from hybrid_raycast import core
+from reference import describe_ray, kind_missing_reason
+
+needs_embree = pytest.mark.skipif(kind_missing_reason("embree") is not None,
+                                  reason=str(kind_missing_reason("embree")))
+
+
+def _layers():
+    """Three parallel squares (two triangles each) at z = 1, 2, 3, with degenerate
+    triangles interleaved so Embree's primID differs from the mesh's index."""
+    tris = []
+    for z in (1.0, 2.0, 3.0):
+        tris.append([[0, 0, z], [0, 0, z], [1, 0, z]])  # degenerate
+        tris.append([[-2, -2, z], [2, -2, z], [2, 2, z]])
+        tris.append([[-2, -2, z], [2, 2, z], [-2, 2, z]])
+    tris = np.array(tris, np.float64)
+    return core.TriangleMesh(tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3))
+
+
+def test_importing_core_does_not_import_embreex():
+    code = ("import sys, types; p = types.ModuleType('hybrid_raycast'); p.__path__ = [sys.argv[1]]; "
+            "sys.modules['hybrid_raycast'] = p; from hybrid_raycast import core; "
+            "core.build(core.TriangleMesh([[0,0,0],[1,0,0],[0,1,0]], [[0,1,2]]), 'brute'); "
+            "assert 'embreex' not in sys.modules, 'core imported embreex eagerly'; print('ok')")
+    r = subprocess.run([sys.executable, "-c", code, str(ROOT)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_build_without_embreex_raises_a_clear_runtime_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "embreex", None)  # makes "import embreex" fail
+    for name in [k for k in sys.modules if k.startswith("embreex.")]:
+        monkeypatch.setitem(sys.modules, name, None)
+    with pytest.raises(RuntimeError, match="embreex is not installed"):
+        core.build(_layers(), "embree")
+
+
+def test_embree_available_agrees_with_importability():
+    try:
+        import embreex  # noqa: F401
+        importable = True
+    except ImportError:
+        importable = False
+    assert core.embree_available() == importable
+
+
+@needs_embree
+def test_embree_maps_primitive_ids_back_past_degenerate_triangles():
+    mesh = _layers()
+    acc = core.build(mesh, "embree")
+    o = np.array([[0.5, -0.5, 0.0], [-0.5, 0.5, 0.0], [0.5, -0.5, 4.0], [-0.5, 0.5, 4.0]])
+    d = np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, -1.0], [0, 0, -1.0]])
+    h = acc.trace(o, d)
+    assert h.triangle.tolist() == [1, 2, 7, 8], f"got {h.triangle.tolist()}, expected [1, 2, 7, 8]"
+    np.testing.assert_allclose(h.t, [1, 1, 1, 1], rtol=1e-6)
+    assert acc.stats()["embree_triangles"] == 6 and acc.stats()["robust"] is True
+
+
+@needs_embree
+def test_embree_honours_tmin_exclusive_and_tmax_inclusive():
+    acc = core.build(_layers(), "embree")
+    o = np.tile([0.5, -0.5, 0.0], (7, 1))
+    d = np.tile([0.0, 0.0, 2.0], (7, 1))  # unnormalised: the layers are at t = 0.5, 1, 1.5
+    tmin = np.array([0.0, 0.5, 0.6, 0.0, 0.0, 1.0, 1.5])
+    tmax = np.array([np.inf, np.inf, np.inf, 0.5, 0.49, 1.0, np.inf])
+    h = acc.trace(o, d, tmin, tmax)
+    exp_tri = [1, 4, 4, 1, -1, -1, -1]
+    exp_t = [0.5, 1.0, 1.0, 0.5, np.inf, np.inf, np.inf]
+    assert h.triangle.tolist() == exp_tri, f"triangles {h.triangle.tolist()}, expected {exp_tri}"
+    np.testing.assert_allclose(h.t, exp_t, rtol=1e-6)
+    assert acc.occluded(o, d, tmin, tmax).tolist() == [t >= 0 for t in exp_tri]
+
+
+@needs_embree
+def test_embree_skips_a_hit_exactly_at_the_ray_start():
+    acc = core.build(_layers(), "embree")
+    # origins exactly on the z = 1 layer (t = 0 there; the convention excludes t = tmin)
+    o = np.array([[0.5, -0.5, 1.0], [0.5, -0.5, 1.0], [0.25, -0.25, 2.0]])
+    d = np.array([[0, 0, 1.0], [0, 0, -1.0], [0, 0, 1.0]])
+    h = acc.trace(o, d)
+    assert h.triangle.tolist() == [4, -1, 7], f"got {h.triangle.tolist()}, expected [4, -1, 7]"
+    np.testing.assert_allclose(h.t[[0, 2]], [1.0, 1.0], rtol=1e-5)
+    assert acc.occluded(o, d).tolist() == [True, False, True]
+    # the same with tmin > 0 putting the start exactly on a layer
+    h = acc.trace(np.zeros((1, 3)) + [0.5, -0.5, 0], [[0, 0, 1.0]], tmin=2.0)
+    assert h.triangle.tolist() == [7] and abs(h.t[0] - 3) < 1e-5, f"{h.triangle.tolist()} t={h.t.tolist()}"
+
+
+@needs_embree
+def test_embree_barycentrics_follow_the_project_convention():
+    rng = np.random.default_rng(0)
+    tris = rng.uniform(-3, 3, (50, 3, 3))
+    mesh = core.TriangleMesh(tris.reshape(-1, 3), np.arange(150).reshape(-1, 3))
+    w = rng.dirichlet([3, 3, 3], 50)
+    target = np.einsum("nk,nkj->nj", w, tris)
+    o = rng.uniform(-3, 3, (50, 3))
+    he = core.build(mesh, "embree").trace(o, target - o)
+    hb = core.build(mesh, "brute").trace(o, target - o)
+    same = (he.triangle == hb.triangle) & hb.hit
+    assert same.mean() > 0.95, f"only {same.mean():.0%} of rays agree on the triangle"
+    np.testing.assert_allclose(he.u[same], hb.u[same], atol=1e-4, err_msg="u is the weight of corner 1")
+    np.testing.assert_allclose(he.v[same], hb.v[same], atol=1e-4, err_msg="v is the weight of corner 2")
+
+
+@needs_embree
+def test_embree_results_do_not_depend_on_chunking():
+    mesh = _layers()
+    o, d = core.uniform_rays(mesh, 300, seed=1)
+    a = core.build(mesh, "embree").trace(o, d)
+    b = core.build(mesh, "embree", chunk_size=7).trace(o, d)
+    w = np.flatnonzero((a.triangle != b.triangle) | (a.t != b.t))
+    assert w.size == 0, f"chunk_size changes {describe_ray(w[0], o, d)}: {a.triangle[w[0]]} vs {b.triangle[w[0]]}"
+
+
+@needs_embree
+def test_embree_build_time_includes_the_commit():
+    rng = np.random.default_rng(2)
+    tris = rng.uniform(-1, 1, (20000, 3, 3))
+    acc = core.build(core.TriangleMesh(tris.reshape(-1, 3), np.arange(60000).reshape(-1, 3)), "embree")
+    assert acc.scene.is_committed, "the Embree scene must be committed (its BVH built) by build()"
+    assert acc.build_time > 0
