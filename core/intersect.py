@@ -76,9 +76,9 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
     if o.shape != d.shape:
         raise ValueError(f"origins {o.shape} and directions {d.shape} differ in shape")
     m = len(o)
-    o32 = np.ascontiguousarray(o, dtype=F32)
-    d32 = np.ascontiguousarray(d, dtype=F32)
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow to inf is reported below
+        o32 = np.ascontiguousarray(o, dtype=F32)
+        d32 = np.ascontiguousarray(d, dtype=F32)
         for name, a in (("origins", o32), ("directions", d32)):
             bad = ~np.isfinite(a).all(axis=1)
             if bad.any():

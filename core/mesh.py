@@ -45,7 +45,8 @@ class TriangleMesh:
                 f = f.astype(np.int64)
             else:
                 raise ValueError(f"triangles must be integer indices, got dtype {f.dtype}")
-        v32 = np.ascontiguousarray(v, dtype=np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow to inf is reported below
+            v32 = np.ascontiguousarray(v, dtype=np.float32)
         bad = ~np.isfinite(v32).all(axis=1)
         if bad.any():
             where = np.flatnonzero(bad)
