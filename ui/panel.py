@@ -1,25 +1,192 @@
-"""The 3D View sidebar tab "Hybrid RT": draws scene.hybrid_raycast and calls operators."""
+"""The 3D View sidebar tab "Hybrid RT": draws scene.hybrid_raycast and calls operators.
+
+Main panel: the ray budget, Analyze, the decision in large type, the break-even count
+with its interval against the expected rays, the time-versus-rays plot and the
+stale-results hint.  Sub-panels: the scene and per-structure figures, the settings,
+and tracing (camera passes, AO bake).  Everything drawn here is also a property of
+``scene.hybrid_raycast`` and a field of the CLI's JSON.
+"""
 
 import bpy
 
+from ..operators import jobs
+from . import plot
 
-class VIEW3D_PT_hybrid_raycast(bpy.types.Panel):
-    bl_label = "Hybrid Ray Cast"
+
+def _rays(x: float) -> str:
+    if x >= 1e9:
+        return f"{x / 1e9:.3g}G"
+    if x >= 1e6:
+        return f"{x / 1e6:.3g}M"
+    if x >= 1e3:
+        return f"{x / 1e3:.3g}k"
+    return f"{x:.0f}"
+
+
+def _secs(x: float) -> str:
+    if x >= 1.0:
+        return f"{x:.2f} s"
+    if x >= 1e-3:
+        return f"{x * 1e3:.1f} ms"
+    if x >= 1e-6:
+        return f"{x * 1e6:.2f} us"
+    return f"{x * 1e9:.1f} ns"
+
+
+def break_even_text(props) -> tuple[str, str]:
+    """(point, interval) as the panel shows them."""
+    point = "never (the grid always wins)" if props.break_even_infinite else f"{_rays(props.break_even_rays)} rays"
+    lo = "inf" if props.break_even_low_infinite else _rays(props.break_even_low)
+    hi = "inf" if props.break_even_high_infinite else _rays(props.break_even_high)
+    return point, f"[{lo} - {hi}]"
+
+
+class _Base:
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "Hybrid RT"
 
+
+class VIEW3D_PT_hybrid_raycast(_Base, bpy.types.Panel):
+    bl_label = "Hybrid Ray Cast"
+
+    def draw(self, context):
+        layout = self.layout
+        scene = context.scene
+        props = scene.hybrid_raycast
+
+        # -- the ray budget ---------------------------------------------------------
+        col = layout.column(align=True)
+        col.row(align=True).prop(props, "ray_budget", expand=True)
+        if props.ray_budget == "RENDER":
+            r = scene.render
+            pct = r.resolution_percentage / 100
+            box = col.box()
+            sub = box.column(align=True)
+            sub.label(text=f"{int(r.resolution_x * pct)} x {int(r.resolution_y * pct)} px ({r.resolution_percentage} %)",
+                      icon="RESTRICT_RENDER_OFF")
+            sub.label(text=f"x {props.render_samples} samples")
+            sub.prop(props, "path_length", text="x Path Length")
+            sub.label(text=f"= {_rays(props.expected_rays)} rays")
+        else:
+            col.prop(props, "custom_rays", text="Rays")
+
+        # -- run ---------------------------------------------------------------------
+        if jobs.RUNNING:
+            box = layout.box()
+            text = f"{jobs.RUNNING.get('label', '')}: {jobs.RUNNING.get('text', '')}"
+            if hasattr(box, "progress"):
+                box.progress(factor=float(jobs.RUNNING.get("fraction", 0.0)), type="BAR", text=text)
+            else:
+                box.label(text=text, icon="TIME")
+            box.label(text="Esc cancels", icon="CANCEL")
+        row = layout.row(align=True)
+        row.scale_y = 1.5
+        row.operator("hybrid_raycast.analyze", icon="VIEWZOOM")
+        row.operator("hybrid_raycast.calibrate", text="", icon="PREFERENCES")
+
+        if not props.has_results:
+            layout.label(text="Analyze to decide: grid or BVH?", icon="INFO")
+            return
+
+        # -- the decision --------------------------------------------------------------
+        if props.stale:
+            warn = layout.box()
+            warn.alert = True
+            warn.label(text="Results are stale:", icon="ERROR")
+            warn.label(text=props.stale_reason)
+        box = layout.box()
+        big = box.row()
+        big.scale_y = 2.2
+        big.alignment = "CENTER"
+        big.label(text=props.decision, icon="CHECKMARK" if props.decision_certain else "QUESTION")
+        point, interval = break_even_text(props)
+        sub = box.column(align=True)
+        sub.label(text=f"Expected: {_rays(props.analyzed_rays)} rays")
+        sub.label(text=f"Break-even: {point}")
+        sub.label(text=f"Interval: {interval}")
+        if not props.decision_certain:
+            sub.label(text="Expected rays inside the interval: uncertain", icon="QUESTION")
+
+        icon = plot.panel_preview(scene.name, plot.figures_from_props(props))
+        if icon:
+            layout.template_icon(icon_value=icon, scale=10.0)
+            legend = layout.row(align=True)
+            legend.label(text="Grid", icon="KEYTYPE_KEYFRAME_VEC")
+            if props.bvh_considered:
+                legend.label(text="BVH", icon="KEYTYPE_BREAKDOWN_VEC")
+            if props.embree_considered:
+                legend.label(text="Embree", icon="KEYTYPE_JITTER_VEC")
+            layout.label(text="Total time vs rays (log-log); band: interval")
+        layout.label(text=f"Calibration: {props.calibration_source}", icon="PREFERENCES")
+
+
+class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
+    bl_label = "Scene and Timings"
+    bl_parent_id = "VIEW3D_PT_hybrid_raycast"
+    bl_options = {"DEFAULT_CLOSED"}
+
     def draw(self, context):
         layout = self.layout
         props = context.scene.hybrid_raycast
-        col = layout.column()
-        col.prop(props, "selected_only")
-        col.prop(props, "expected_rays")
-        col.operator("hybrid_raycast.scene_summary", icon="MESH_DATA")
-        if props.has_summary:
+        if not props.has_summary:
+            layout.label(text="No analysis yet")
+            return
+        col = layout.column(align=True)
+        col.label(text=f"{props.triangle_count:,} triangles", icon="MESH_DATA")
+        col.label(text=f"{props.object_count:,} objects ({props.instance_count:,} instances)", icon="OBJECT_DATA")
+        lo, hi = props.bounds_min, props.bounds_max
+        col.label(text="Size {:.3g} x {:.3g} x {:.3g}".format(*(h - l for l, h in zip(lo, hi))))
+        col.label(text=f"Extracted in {_secs(props.extraction_time)}", icon="TIME")
+        if not props.has_results:
+            return
+        col = layout.column(align=True)
+        col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
+        col.label(text=f"  (from {props.samples_traced:,} sample rays)")
+        if props.bvh_considered:
+            col.label(text=f"BVH (est.): build {_secs(props.bvh_build_time)}, {_secs(props.bvh_per_ray)}/ray")
+        if props.embree_considered:
+            col.label(text=f"Embree (est.): build {_secs(props.embree_build_time)}, {_secs(props.embree_per_ray)}/ray")
+        elif not props.embree_available:
+            col.label(text="Embree: embreex not importable", icon="INFO")
+        col.label(text=f"Analyzed {props.analyzed_at} in {_secs(props.analysis_duration)}", icon="TIME")
+        if props.notes:
+            for note in props.notes.split(" | "):
+                col.label(text=note)
+
+
+class VIEW3D_PT_hybrid_raycast_settings(_Base, bpy.types.Panel):
+    bl_label = "Settings"
+    bl_parent_id = "VIEW3D_PT_hybrid_raycast"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        props = context.scene.hybrid_raycast
+        layout.prop(props, "candidates")
+        layout.prop(props, "sample_rays")
+        layout.prop(props, "grid_density")
+        layout.prop(props, "selected_only")
+        layout.prop(props, "calibration_scale")
+
+
+class VIEW3D_PT_hybrid_raycast_trace(_Base, bpy.types.Panel):
+    bl_label = "Trace"
+    bl_parent_id = "VIEW3D_PT_hybrid_raycast"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.hybrid_raycast
+        layout.operator("hybrid_raycast.trace", text="Camera Passes", icon="RENDER_STILL").workload = "CAMERA"
+        col = layout.column(align=True)
+        col.prop(props, "ao_samples")
+        col.prop(props, "ao_distance")
+        col.prop(props, "ao_attribute", text="")
+        col.operator("hybrid_raycast.trace", text="Bake AO", icon="SHADING_RENDERED").workload = "AO"
+        if props.trace_structure != "NONE":
             box = layout.box()
-            box.label(text=f"{props.triangle_count:,} triangles", icon="MESH_DATA")
-            box.label(text=f"{props.object_count:,} objects ({props.instance_count:,} instances)", icon="OBJECT_DATA")
-            lo, hi = props.bounds_min, props.bounds_max
-            box.label(text="Size {:.3g} x {:.3g} x {:.3g}".format(*(h - l for l, h in zip(lo, hi))))
-            box.label(text=f"Extracted in {props.extraction_time * 1e3:.0f} ms", icon="TIME")
+            box.label(text=f"{_rays(props.trace_rays)} {props.trace_workload.lower()} rays with {props.trace_structure}")
+            box.label(text=f"build {_secs(props.trace_build_time)}, trace {_secs(props.trace_time)}")
+            box.label(text=props.trace_output)

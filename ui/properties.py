@@ -1,32 +1,259 @@
-"""Scene settings and results: ``scene.hybrid_raycast``."""
+"""Scene settings and results: ``scene.hybrid_raycast``.
+
+Scripts read the results directly, e.g.::
+
+    props = bpy.context.scene.hybrid_raycast
+    bpy.ops.hybrid_raycast.analyze()
+    props.decision           # 'GRID', 'BVH' or 'EMBREE' ('NONE' before any analysis)
+    props.break_even_rays    # rays up to which the grid is cheapest
+    props.stale              # the scene or the settings changed since the analysis
+
+Infinite break-evens: Blender stores FloatProperty values as float32, which has no room
+for "never".  When the grid is always cheapest, ``break_even_infinite`` is True and
+``break_even_rays`` holds ``BREAK_EVEN_NEVER`` (the largest float32, 3.4e38), so
+``expected_rays <= break_even_rays`` still reads right.  The same holds for the interval
+ends (``break_even_low_infinite``, ``break_even_high_infinite``).  The JSON writes null.
+
+``expected_rays`` is the budget in use: from the render settings when ``ray_budget`` is
+'RENDER', else ``custom_rays``.  Assigning it stores the number in ``custom_rays`` and
+switches ``ray_budget`` to 'CUSTOM'.
+"""
+
+import json
+import math
 
 import bpy
-from bpy.props import BoolProperty, FloatProperty, FloatVectorProperty, IntProperty
+from bpy.props import (
+    BoolProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    StringProperty,
+)
+
+from ..operators.budget import ray_budget, render_samples
+
+#: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
+BREAK_EVEN_NEVER = 3.4028234663852886e38
+_RAYS_MAX = 1.0e15
+
+DECISION_ITEMS = (
+    ("NONE", "None", "No analysis yet"),
+    ("GRID", "Grid", "Keep the uniform grid: it is cheapest for the expected rays"),
+    ("BVH", "BVH", "Build the numpy BVH: it pays for its build within the expected rays"),
+    ("EMBREE", "Embree", "Build Embree's BVH (embreex): it pays for its build within the expected rays"),
+)
+
+
+def _get_expected(self):
+    return min(ray_budget(self.id_data, self)["rays"], _RAYS_MAX)
+
+
+def _set_expected(self, value):
+    self.custom_rays = value
+    self.ray_budget = "CUSTOM"
+
+
+def _get_render_samples(self):
+    return render_samples(self.id_data)[0]
+
+
+def current_settings(props) -> dict:
+    """The settings an analysis depends on (compared to decide whether it is stale)."""
+    return {
+        "expected_rays": float(props.expected_rays),
+        "selected_only": bool(props.selected_only),
+        "candidates": sorted(props.candidates),
+        "sample_rays": int(props.sample_rays),
+        "grid_density": round(float(props.grid_density), 6),
+    }
+
+
+def stale_reason(props) -> str:
+    """Why the results no longer describe the scene ('' when they do, or when there are none)."""
+    if not props.has_results:
+        return ""
+    if props.geometry_changed:
+        return "the scene changed since the analysis"
+    try:
+        then = json.loads(props.analyzed_settings)
+    except ValueError:
+        return "the analysis settings are unknown"
+    now = current_settings(props)
+    diff = []
+    for key, value in now.items():
+        old = then.get(key)
+        if key == "expected_rays":
+            if old is None or not math.isclose(value, old, rel_tol=1e-6):
+                diff.append("expected rays")
+        elif value != old:
+            diff.append(key.replace("_", " "))
+    return f"{', '.join(diff)} changed since the analysis" if diff else ""
+
+
+def _get_stale(self):
+    return bool(stale_reason(self))
+
+
+def _get_stale_reason(self):
+    return stale_reason(self)
+
+
+def _time(name, description, **kw):
+    return FloatProperty(name=name, description=description, unit="TIME_ABSOLUTE", subtype="TIME_ABSOLUTE",
+                         min=0.0, precision=6, **kw)
 
 
 class HybridRaycastSettings(bpy.types.PropertyGroup):
-    # -- settings ------------------------------------------------------------------
+    # == settings ======================================================================
+    ray_budget: EnumProperty(
+        name="Ray Budget",
+        description="Where the expected number of rays comes from",
+        items=(
+            ("RENDER", "Render", "Render resolution x percentage x samples per pixel x expected path length"),
+            ("CUSTOM", "Custom", "A number of rays you type"),
+        ),
+        default="RENDER",
+    )
+    custom_rays: FloatProperty(
+        name="Custom Rays",
+        description="Rays you are about to shoot (used when the ray budget is Custom)",
+        default=1.0e6, min=0.0, max=_RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
+    )
+    expected_rays: FloatProperty(
+        name="Expected Rays",
+        description="Rays you are about to shoot: decides whether a BVH pays for its build. "
+                    "From the render settings or the custom number; setting it switches to Custom",
+        min=0.0, max=_RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
+        get=_get_expected, set=_set_expected,
+    )
+    path_length: FloatProperty(
+        name="Path Length",
+        description="Expected rays per camera sample (the camera ray, its bounces and shadow rays), for the Render budget",
+        default=3.0, min=1.0, max=1024.0, soft_max=64.0, precision=1,
+    )
+    render_samples: IntProperty(
+        name="Samples",
+        description="Samples per pixel of the scene's render engine (read-only; set it in the render properties)",
+        get=_get_render_samples,
+    )
+    candidates: EnumProperty(
+        name="Candidates",
+        description="Hierarchical structures weighed against the uniform grid",
+        items=(
+            ("BVH", "BVH", "The numpy BVH of this add-on"),
+            ("EMBREE", "Embree", "Intel Embree through embreex (skipped where embreex cannot be imported)"),
+        ),
+        options={"ENUM_FLAG"},
+        default={"BVH", "EMBREE"},
+    )
+    sample_rays: IntProperty(
+        name="Sample Rays",
+        description="Representative rays traced through the grid to measure its time per ray (K in the paper)",
+        default=16384, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
+    )
+    grid_density: FloatProperty(
+        name="Grid Density",
+        description="Grid cells per triangle (Cleary and Wyvill's lambda)",
+        default=2.0, min=0.01, max=100.0, soft_min=0.25, soft_max=16.0, precision=2,
+    )
     selected_only: BoolProperty(
         name="Selected Only",
         description="Extract only the selected objects (and instances whose instancer is selected)",
         default=False,
     )
-    expected_rays: FloatProperty(
-        name="Expected Rays",
-        description="How many rays you are about to shoot; decides whether a BVH pays for its build",
-        default=1.0e6,
-        min=0.0,
-        soft_max=1.0e10,
-        precision=0,
-        step=100000,
+    ao_samples: IntProperty(
+        name="AO Samples",
+        description="Hemisphere rays per vertex for the ambient-occlusion bake",
+        default=16, min=1, max=4096, soft_max=256,
     )
-    # -- results of the last extraction (read-only in the UI) -----------------------
+    ao_distance: FloatProperty(
+        name="AO Distance",
+        description="Farthest occluder counted by the ambient-occlusion bake (0: unlimited)",
+        default=0.0, min=0.0, soft_max=100.0, subtype="DISTANCE", unit="LENGTH",
+    )
+    ao_attribute: StringProperty(
+        name="AO Attribute",
+        description="Colour attribute (per vertex) the ambient-occlusion bake writes",
+        default="HRC AO", maxlen=63,
+    )
+    calibration_scale: EnumProperty(
+        name="Calibration",
+        description="How many procedural scenes and rays the calibration measures",
+        items=(
+            ("tiny", "Tiny", "A few seconds; rough constants (for tests)"),
+            ("quick", "Quick", "Under a minute"),
+            ("default", "Full", "The default set: a few minutes, the best constants"),
+        ),
+        default="quick",
+    )
+
+    # == results of the last extraction =================================================
+    has_summary: BoolProperty(name="Has Summary", description="An extraction has run in this scene", default=False)
     triangle_count: IntProperty(name="Triangles", description="Triangles extracted from the evaluated scene", min=0)
     object_count: IntProperty(name="Objects", description="Objects and instances that contributed triangles", min=0)
     instance_count: IntProperty(name="Instances", description="Instances among the contributing objects", min=0)
-    extraction_time: FloatProperty(
-        name="Extraction Time", description="Wall time of the last extraction", unit="TIME_ABSOLUTE", min=0.0, precision=3
-    )
+    extraction_time: _time("Extraction Time", "Wall time of the last extraction")
     bounds_min: FloatVectorProperty(name="Bounds Min", description="World-space minimum corner", subtype="XYZ", unit="LENGTH", size=3)
     bounds_max: FloatVectorProperty(name="Bounds Max", description="World-space maximum corner", subtype="XYZ", unit="LENGTH", size=3)
-    has_summary: BoolProperty(name="Has Summary", description="An extraction has run in this scene", default=False)
+
+    # == results of the last analysis ===================================================
+    has_results: BoolProperty(name="Has Results", description="An analysis has run in this scene", default=False)
+    decision: EnumProperty(name="Decision", description="The structure the analysis chose for the expected rays",
+                           items=DECISION_ITEMS, default="NONE")
+    decision_certain: BoolProperty(
+        name="Certain", description="The expected rays lie outside the break-even interval, so the choice holds "
+                                    "at both ends of the calibration's spread", default=False)
+    analyzed_rays: FloatProperty(name="Analyzed Rays", description="Expected rays the analysis decided for",
+                                 min=0.0, max=_RAYS_MAX, precision=0)
+    break_even_rays: FloatProperty(
+        name="Break-even Rays", description="Rays up to which the already built grid is cheapest "
+                                           "(3.4e38 with Break-even Infinite set: the grid always wins)",
+        min=0.0, max=BREAK_EVEN_NEVER, precision=0)
+    break_even_low: FloatProperty(name="Break-even Low", description="Low end of the break-even interval "
+                                  "(the calibration's cheap-build, fast-ray end)", min=0.0, max=BREAK_EVEN_NEVER, precision=0)
+    break_even_high: FloatProperty(name="Break-even High", description="High end of the break-even interval "
+                                   "(the calibration's dear-build, slow-ray end)", min=0.0, max=BREAK_EVEN_NEVER, precision=0)
+    break_even_infinite: BoolProperty(name="Break-even Infinite", description="No candidate ever beats the grid")
+    break_even_low_infinite: BoolProperty(name="Break-even Low Infinite", description="The interval's low end is infinite")
+    break_even_high_infinite: BoolProperty(name="Break-even High Infinite", description="The interval's high end is infinite")
+    break_even_kind: EnumProperty(
+        name="Break-even Against", description="The candidate that first beats the grid",
+        items=(("NONE", "None", "No candidate beats the grid"), ("BVH", "BVH", ""), ("EMBREE", "Embree", "")),
+        default="NONE")
+    grid_build_time: _time("Grid Build", "Measured build time of the uniform grid")
+    grid_per_ray: _time("Grid per Ray", "Measured grid time per ray, from the sample rays")
+    samples_traced: IntProperty(name="Samples Traced", description="Sample rays the grid's time per ray comes from", min=0)
+    bvh_considered: BoolProperty(name="BVH Considered", description="The BVH was a candidate with calibration constants")
+    bvh_build_time: _time("BVH Build (est.)", "Estimated BVH build time, c_B N log2 N")
+    bvh_per_ray: _time("BVH per Ray (est.)", "Estimated BVH time per ray, c_R log2 N")
+    embree_considered: BoolProperty(name="Embree Considered", description="Embree was a candidate, importable, with calibration constants")
+    embree_available: BoolProperty(name="Embree Available", description="embreex could be imported at the analysis")
+    embree_build_time: _time("Embree Build (est.)", "Estimated Embree build time, c_B N log2 N")
+    embree_per_ray: _time("Embree per Ray (est.)", "Estimated Embree time per ray, c_R log2 N")
+    analyzed_at: StringProperty(name="Analyzed At", description="When the analysis ran (local time, ISO 8601)")
+    analysis_duration: _time("Analysis Time", "Wall time of the whole analysis (extraction, grid, samples, plan)")
+    calibration_source: StringProperty(name="Calibration", description="Where the calibration constants came from")
+    calibration_message: StringProperty(name="Calibration Message", description="How the calibration was loaded")
+    notes: StringProperty(name="Notes", description="The plan's notes, separated by ' | '")
+    geometry_changed: BoolProperty(
+        name="Geometry Changed", description="The scene's geometry, transforms or visibility changed since the analysis",
+        default=False)
+    analyzed_settings: StringProperty(name="Analyzed Settings", description="The settings of the analysis (JSON)",
+                                      options={"HIDDEN"})
+    last_analysis_json: StringProperty(name="Last Analysis", description="The last analysis, as the CLI writes it (JSON)",
+                                       options={"HIDDEN"})
+    stale: BoolProperty(name="Stale", description="The scene or the analysis settings changed since the analysis",
+                        get=_get_stale)
+    stale_reason: StringProperty(name="Stale Reason", description="What changed since the analysis",
+                                 get=_get_stale_reason)
+
+    # == results of the last trace ======================================================
+    trace_workload: StringProperty(name="Traced", description="What the last trace shot: 'CAMERA' or 'AO'")
+    trace_structure: EnumProperty(name="Traced With", description="The structure the last trace used",
+                                  items=DECISION_ITEMS, default="NONE")
+    trace_rays: FloatProperty(name="Traced Rays", description="Rays the last trace shot", min=0.0, precision=0)
+    trace_build_time: _time("Trace Build", "Time the last trace spent building its structure (0 when reused)")
+    trace_time: _time("Trace Time", "Time the last trace spent tracing")
+    trace_output: StringProperty(name="Trace Output", description="What the last trace wrote (images or attribute)")

@@ -1,0 +1,268 @@
+"""HYBRID_RAYCAST_OT_analyze: extract the scene, build the grid, time sample rays, decide.
+
+The analysis is Hapala et al.'s application step (``core.plan``) on the evaluated scene
+with the ray budget of ``scene.hybrid_raycast``.  Its outcome is one JSON-able *record*
+(``analysis_record``): every figure the sidebar shows, and ``core.Plan.to_dict()`` in
+full.  ``store_results`` copies the record into the scene properties and keeps the JSON
+in ``last_analysis_json``; ``results_json`` is what the CLI writes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from datetime import datetime
+
+import bpy
+import numpy as np
+
+from .. import core
+from . import state
+from .budget import ray_budget
+from .calibrate import load_calibration
+from .extract import NoGeometryError, scene_mesh, scene_summary
+from .jobs import BadInput, InvalidGeometry, Job, JobOperator, NoGeometry
+
+RECORD_FORMAT = 1
+NEVER = 3.4028234663852886e38  # ui.properties.BREAK_EVEN_NEVER (float32's largest value)
+
+
+# -- the evaluated scene ---------------------------------------------------------------
+
+def evaluated_depsgraph(scene=None, view_layer=None):
+    """The evaluated depsgraph of ``scene`` (default: the context's), updates counted."""
+    ctx = bpy.context
+    if scene is None or (scene == ctx.scene and (view_layer is None or view_layer == ctx.view_layer)):
+        return ctx.evaluated_depsgraph_get()
+    vl = view_layer if view_layer is not None else scene.view_layers[0]
+    vl.update()
+    return vl.depsgraph
+
+
+def _non_finite_objects(depsgraph) -> list[tuple[str, int]]:
+    """(object name, vertices with NaN/inf coordinates) of the evaluated meshes."""
+    bad, seen = [], set()
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        if ob.type != "MESH" or ob.data is None or ob.data.as_pointer() in seen:
+            continue
+        seen.add(ob.data.as_pointer())
+        me = ob.data
+        co = np.empty(len(me.vertices) * 3, np.float32)
+        me.vertices.foreach_get("co", co)
+        n = int((~np.isfinite(co.reshape(-1, 3)).all(axis=1)).sum())
+        if n:
+            bad.append((ob.name, n))
+    return bad
+
+
+def extract(depsgraph, *, selected_only=False, progress=None):
+    """(TriangleMesh, summary dict) of the evaluated scene; NoGeometry or InvalidGeometry
+    with a one-line reason when there is nothing usable."""
+    t0 = time.perf_counter()
+    try:
+        mesh = scene_mesh(depsgraph, selected_only=selected_only, progress=progress)
+    except NoGeometryError as e:
+        raise NoGeometry(f"no geometry: {e}") from None
+    except ValueError as e:
+        bad = _non_finite_objects(depsgraph)
+        if bad:
+            names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5])
+            raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them") from None
+        raise InvalidGeometry(f"invalid geometry: {e}") from None
+    return mesh, scene_summary(depsgraph, mesh, time.perf_counter() - t0)
+
+
+def candidate_kinds(props) -> tuple[tuple[str, ...], list[str]]:
+    """('grid', chosen candidates that can be built here), notes on the ones skipped."""
+    kinds, notes = ["grid"], []
+    if "BVH" in props.candidates:
+        kinds.append("bvh")
+    if "EMBREE" in props.candidates:
+        if core.embree.embree_available():
+            kinds.append("embree")
+        else:
+            notes.append("Embree skipped: embreex cannot be imported here; deciding without it")
+    return tuple(kinds), notes
+
+
+# -- the record --------------------------------------------------------------------------
+
+def _finite(x):
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def analysis_record(scene, summary, budget, settings, calibration_info, plan, *, started, duration, embree_ok) -> dict:
+    """Every figure of an analysis, JSON-able (infinite break-evens as null)."""
+    cands = plan.candidates
+    return {
+        "format": RECORD_FORMAT,
+        "blender": bpy.app.version_string,
+        "file": bpy.data.filepath,
+        "scene": scene.name,
+        "analyzed_at": started,
+        "analysis_seconds": duration,
+        "summary": summary,
+        "budget": budget,
+        "settings": settings,
+        "calibration": calibration_info,
+        "embree_available": bool(embree_ok),
+        "decision": plan.decision,
+        "certain": plan.certain,
+        "expected_rays": plan.expected_rays,
+        "break_even": {
+            "rays": _finite(plan.break_even),
+            "low": _finite(plan.break_even_low),
+            "high": _finite(plan.break_even_high),
+            "infinite": not math.isfinite(plan.break_even),
+            "against": plan.break_even_kind if math.isfinite(plan.break_even) else None,
+        },
+        "structures": {
+            k: {"build_time": c.build_time, "build_low": c.build_low, "build_high": c.build_high,
+                "per_ray": c.per_ray, "per_ray_low": c.per_ray_low, "per_ray_high": c.per_ray_high,
+                "measured": c.measured}
+            for k, c in cands.items()
+        },
+        "plan": plan.to_dict(),
+        "summary_line": plan.summary(),
+    }
+
+
+def store_results(props, record):
+    """Copy an analysis record into ``scene.hybrid_raycast`` (the only place that does)."""
+    s = record["summary"]
+    props.triangle_count = s["triangles"]
+    props.object_count = s["objects"]
+    props.instance_count = s["instances"]
+    props.extraction_time = s["extraction_seconds"]
+    props.bounds_min, props.bounds_max = s["bounds"]
+    props.has_summary = True
+    props.decision = record["decision"]
+    props.decision_certain = record["certain"]
+    props.analyzed_rays = record["expected_rays"]
+    be = record["break_even"]
+    for name, key in (("break_even_rays", "rays"), ("break_even_low", "low"), ("break_even_high", "high")):
+        value = be[key]
+        setattr(props, name, NEVER if value is None else min(value, NEVER))
+        setattr(props, name.replace("_rays", "") + "_infinite", value is None)
+    props.break_even_kind = (be["against"] or "none").upper()
+    st = record["structures"]
+    props.grid_build_time = st["grid"]["build_time"]
+    props.grid_per_ray = st["grid"]["per_ray"]
+    props.samples_traced = record["plan"]["samples"]
+    for kind in ("bvh", "embree"):
+        c = st.get(kind)
+        setattr(props, f"{kind}_considered", c is not None)
+        setattr(props, f"{kind}_build_time", c["build_time"] if c else 0.0)
+        setattr(props, f"{kind}_per_ray", c["per_ray"] if c else 0.0)
+    props.embree_available = record["embree_available"]
+    props.analyzed_at = record["analyzed_at"]
+    props.analysis_duration = record["analysis_seconds"]
+    props.calibration_source = record["calibration"]["source"]
+    props.calibration_message = record["calibration"]["message"]
+    props.notes = " | ".join(record["plan"]["notes"])
+    props.analyzed_settings = json.dumps(record["settings"])
+    props.last_analysis_json = json.dumps(record)
+    props.geometry_changed = False
+    props.has_results = True
+
+
+def results_json(props) -> dict:
+    """The last analysis record with the current stale flag and the last trace: the CLI's JSON."""
+    if not props.last_analysis_json:
+        return {}
+    record = json.loads(props.last_analysis_json)
+    record["stale"] = bool(props.stale)
+    record["stale_reason"] = props.stale_reason
+    record["last_trace"] = None
+    if props.trace_structure != "NONE":
+        record["last_trace"] = {
+            "workload": props.trace_workload, "structure": props.trace_structure, "rays": props.trace_rays,
+            "build_time": props.trace_build_time, "trace_time": props.trace_time, "output": props.trace_output,
+        }
+    return record
+
+
+# -- the job -------------------------------------------------------------------------------
+
+def settings_of(props) -> dict:
+    from ..ui.properties import current_settings
+
+    return current_settings(props)
+
+
+def analysis_job(scene, job: Job, *, view_layer=None):
+    """Generator: extract, build the grid, time the sample rays, plan.  Returns a dict
+    with the record and the objects to cache; writes nothing into Blender."""
+    props = scene.hybrid_raycast
+    budget = ray_budget(scene, props)
+    expected = budget["rays"]
+    if not (expected > 0 and math.isfinite(expected)):
+        raise BadInput("expected rays is 0: set a ray budget (Custom rays, or the render resolution and samples)")
+    settings = settings_of(props)
+    kinds, notes = candidate_kinds(props)
+    started = datetime.now().astimezone().isoformat(timespec="seconds")
+    t0 = time.perf_counter()
+    cal, message, path = load_calibration()
+    yield 0.02, "extracting the evaluated triangles"
+    depsgraph = evaluated_depsgraph(scene, view_layer)
+    gen_at = state.generation(scene)
+    mesh, summary = extract(depsgraph, selected_only=props.selected_only)
+    vl = depsgraph.view_layer
+    yield 0.3, f"building the grid over {mesh.triangle_count:,} triangles and tracing {props.sample_rays:,} sample rays"
+    job.fraction, job.text = 0.3, f"grid over {mesh.triangle_count:,} triangles, {props.sample_rays:,} sample rays"
+    plan = yield from job.call(
+        core.plan, mesh, expected, cal, samples=props.sample_rays,
+        grid_config={"density": props.grid_density}, kinds=kinds,
+    )
+    plan.notes[:0] = notes
+    job.check()
+    calibration_info = {"source": cal.source, "message": message, "path": str(path) if path else None,
+                        "measured": cal.source == "measured"}
+    record = analysis_record(scene, summary, budget, settings, calibration_info, plan, started=started,
+                             duration=time.perf_counter() - t0, embree_ok=core.embree.embree_available())
+    yield 1.0, "done"
+    return {"record": record, "mesh": mesh, "plan": plan, "summary": summary, "generation": gen_at,
+            "view_layer": vl, "notes": notes, "calibration": cal}
+
+
+def apply_analysis(scene, result) -> list[tuple[str, str]]:
+    """Write an analysis into the scene (properties, cache); the messages to report."""
+    props = scene.hybrid_raycast
+    record = result["record"]
+    store_results(props, record)
+    key = (props.selected_only, round(float(props.grid_density), 6))
+    c = state.store(scene, key, result["mesh"], result["summary"], grid=result["plan"].grid,
+                    generation_at=result["generation"])
+    if result["generation"] != state.generation(scene):  # changed while the job ran
+        props.geometry_changed = True
+    else:
+        try:
+            state.remember_visibility(scene, result["view_layer"], props.selected_only)
+        except ReferenceError:
+            pass
+    c.plan = result["plan"]
+    msgs = []
+    cal = record["calibration"]
+    if not cal["measured"]:
+        msgs.append(("WARNING", cal["message"]))
+    for note in result["notes"]:
+        msgs.append(("WARNING", note))
+    msgs.append(("INFO", record["summary_line"]))
+    return msgs
+
+
+class HYBRID_RAYCAST_OT_analyze(JobOperator, bpy.types.Operator):
+    """Extract the scene, build a uniform grid, time sample rays through it and decide whether a BVH pays for itself"""
+
+    bl_idname = "hybrid_raycast.analyze"
+    bl_label = "Analyze"
+    bl_options = {"REGISTER", "UNDO"}
+    job_label = "Hybrid RT analysis"
+
+    def start(self, context, job):
+        return analysis_job(context.scene, job, view_layer=context.view_layer)
+
+    def finish(self, context, result):
+        return apply_analysis(context.scene, result)

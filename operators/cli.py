@@ -1,0 +1,280 @@
+"""The headless command line: ``blender -b scene.blend -c hybrid_raycast <command> [options]``.
+
+Registered with ``bpy.utils.register_cli_command`` when the add-on is enabled (so the
+add-on must be enabled in the preferences Blender starts with).  Blender loads a .blend
+given *before* ``-c`` first, then runs the command (checked with Blender 4.3.2); or pass
+``--blend PATH`` to open one from the command.
+
+Commands
+    analyze    extract, build the grid, time sample rays, decide; JSON of every figure
+    trace      the camera passes (or ``--workload ao``: an AO bake of ``--object``) with
+               the structure the plan picks; analyzes first when there is no fresh
+               analysis, so the JSON holds both; ``--output`` gets the pass PNGs
+    calibrate  measure this machine's constants (``--scale``) and save them
+    report     the last analysis stored in the .blend (re-analyzed when missing or stale)
+
+Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-`` for
+stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
+given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``,
+``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
+NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``.
+The .blend itself is never saved.
+
+Exit codes (one line on stderr says why):
+    0  success
+    1  internal error (a bug: the traceback is printed too)
+    2  bad arguments (unknown option or command, --rays 0, missing --blend file, ...)
+    3  no geometry (nothing visible and render-enabled has triangles)
+    4  unwritable path (--json, --output or the calibration file)
+    5  invalid geometry (NaN or infinite vertex coordinates)
+    6  nothing to trace (no active camera for the passes, no mesh for the AO bake)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+
+import bpy
+
+from . import calibrate as calibrate_mod
+from .analyze import analysis_job, apply_analysis, results_json
+from .calibrate import apply_calibration, calibration_job
+from .jobs import BadInput, HRCError, Job, Unwritable, run_sync
+from .trace import apply_trace, trace_job
+
+COMMAND = "hybrid_raycast"
+COMMANDS = ("analyze", "trace", "calibrate", "report")
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_ARGS, EXIT_NO_GEOMETRY, EXIT_UNWRITABLE, EXIT_INVALID_GEOMETRY, EXIT_NOTHING_TO_TRACE = range(7)
+PLOT_PNG = "hybrid_raycast_plot.png"
+JSON_NAME = "hybrid_raycast_{command}.json"
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise BadInput(f"bad arguments: {message}")
+
+    def exit(self, status=0, message=None):
+        if message:
+            print(message, file=sys.stderr)
+        raise _Exit(status)
+
+
+class _Exit(Exception):
+    def __init__(self, status):
+        self.status = status
+
+
+def _positive(kind):
+    def conv(text):
+        try:
+            value = kind(float(text)) if kind is int else kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"must be greater than 0, got {text}")
+        return value
+    return conv
+
+
+def parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=f"blender -b scene.blend -c {COMMAND}",
+                description="Grid or BVH for this scene and ray budget (Hybrid Ray Cast).",
+                epilog="exit codes: 0 ok, 1 internal error, 2 bad arguments, 3 no geometry, "
+                       "4 unwritable path, 5 invalid geometry, 6 nothing to trace")
+    p.add_argument("command", choices=COMMANDS)
+    p.add_argument("--rays", type=_positive(float), help="expected rays (sets a custom ray budget)")
+    p.add_argument("--json", help="write the JSON here ('-': stdout)")
+    p.add_argument("--output", help="folder for the plot, the passes and (without --json) the JSON")
+    p.add_argument("--blend", help="open this .blend first")
+    p.add_argument("--scene", help="the scene to use (default: the file's active scene)")
+    p.add_argument("--selected-only", action="store_true", help="only the selected objects")
+    p.add_argument("--samples", type=_positive(int), help="sample rays timed through the grid (K)")
+    p.add_argument("--density", type=_positive(float), help="grid cells per triangle")
+    p.add_argument("--candidates", help="comma-separated: bvh, embree (default: the scene's setting)")
+    p.add_argument("--workload", choices=("camera", "ao"), default="camera", help="trace: what to shoot")
+    p.add_argument("--object", help="trace --workload ao: the mesh to bake (default: the active object)")
+    p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
+    p.add_argument("--calibration", help="the calibration file to read and write")
+    p.add_argument("--scale", choices=("tiny", "quick", "default"), default="quick", help="calibrate: how much to measure")
+    return p
+
+
+def handler(argv) -> int:
+    """What Blender calls with the arguments after ``-c hybrid_raycast``; the exit code."""
+    return main(list(argv))
+
+
+def main(argv, stdout=None, stderr=None) -> int:
+    stdout = stdout or sys.stdout
+    stderr = stderr or sys.stderr
+    command = next((a for a in argv if a in COMMANDS), "")
+    saved_path = calibrate_mod.CALIBRATION_PATH
+    try:
+        try:
+            args = parser().parse_args(argv)
+        except _Exit as e:  # --help
+            return e.status
+        if args.calibration:
+            calibrate_mod.CALIBRATION_PATH = args.calibration
+        return _run(args, stdout)
+    except HRCError as e:
+        print(f"{' '.join(filter(None, (COMMAND, command)))}: error: {e}", file=stderr, flush=True)
+        return e.code
+    except Exception as e:
+        traceback.print_exc()
+        print(f"{' '.join(filter(None, (COMMAND, command)))}: error: internal error ({type(e).__name__}: {e})",
+              file=stderr, flush=True)
+        return EXIT_INTERNAL
+    finally:
+        calibrate_mod.CALIBRATION_PATH = saved_path
+
+
+def _writable_dir(path: Path, what: str) -> Path:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise Unwritable(f"unwritable path: cannot create {what} {path}: {e.strerror or e}") from None
+    if not os.access(path, os.W_OK):
+        raise Unwritable(f"unwritable path: {what} {path} is not writable")
+    return path
+
+
+def _json_target(args) -> Path | None:
+    if args.json == "-":
+        return None
+    if args.json:
+        p = Path(args.json)
+        if p.is_dir():
+            raise Unwritable(f"unwritable path: --json {p} is a folder")
+        _writable_dir(p.parent if str(p.parent) else Path("."), "the folder of --json")
+        if p.exists() and not os.access(p, os.W_OK):
+            raise Unwritable(f"unwritable path: --json {p} is not writable")
+        return p
+    if args.output:
+        return Path(args.output) / JSON_NAME.format(command=args.command)
+    return None
+
+
+def _scene(args):
+    if args.blend:
+        path = Path(args.blend)
+        if not path.is_file():
+            raise BadInput(f"bad arguments: --blend {path}: no such file")
+        try:
+            bpy.ops.wm.open_mainfile(filepath=str(path.resolve()))
+        except RuntimeError as e:
+            raise BadInput(f"bad arguments: --blend {path}: cannot open ({str(e).strip().splitlines()[-1]})") from None
+    if args.scene:
+        scene = bpy.data.scenes.get(args.scene)
+        if scene is None:
+            raise BadInput(f"bad arguments: --scene {args.scene!r}: no such scene "
+                           f"(the file has {', '.join(repr(s.name) for s in bpy.data.scenes)})")
+        return scene
+    return bpy.context.scene
+
+
+def _apply_settings(props, args):
+    if args.rays is not None:
+        props.expected_rays = args.rays
+    if args.selected_only:
+        props.selected_only = True
+    if args.samples is not None:
+        props.sample_rays = min(args.samples, 1 << 22)
+    if args.density is not None:
+        props.grid_density = args.density
+    if args.candidates is not None:
+        names = {c.strip().upper() for c in args.candidates.split(",") if c.strip()}
+        unknown = names - {"BVH", "EMBREE"}
+        if unknown:
+            raise BadInput(f"bad arguments: --candidates: unknown {', '.join(sorted(unknown)).lower()} (use bvh, embree)")
+        props.candidates = names
+    if args.ao_samples is not None:
+        props.ao_samples = min(args.ao_samples, 4096)
+
+
+def _say(stdout, messages):
+    for level, text in messages:
+        print(f"{COMMAND}: {level.lower()}: {text}", file=stdout, flush=True)
+
+
+def _view_layer(scene):
+    ctx = bpy.context
+    return ctx.view_layer if scene == ctx.scene else scene.view_layers[0]
+
+
+def _analyze(scene, stdout):
+    result = run_sync(analysis_job(scene, Job(), view_layer=_view_layer(scene)))
+    _say(stdout, apply_analysis(scene, result))
+
+
+def _write_plot(props, out_dir: Path) -> str:
+    from ..ui import plot
+
+    f = plot.figures_from_props(props)
+    try:
+        return plot.write_png(out_dir / PLOT_PNG, plot.plot_rgba(f, 640, 480))
+    except OSError as e:
+        raise Unwritable(f"unwritable path: {out_dir / PLOT_PNG}: {e.strerror or e}") from None
+
+
+def _run(args, stdout) -> int:
+    out_dir = _writable_dir(Path(args.output), "--output") if args.output else None
+    json_path = _json_target(args)
+    if args.command == "calibrate":
+        if args.blend:
+            _scene(args)
+        result = run_sync(calibration_job(Job(), scale=args.scale))
+        _say(stdout, apply_calibration(None, result))
+        cal = result["calibration"]
+        doc = {"command": "calibrate", "path": str(result["path"]), "calibration": cal.to_dict()}
+    else:
+        scene = _scene(args)
+        props = scene.hybrid_raycast
+        _apply_settings(props, args)
+        if args.command == "analyze" or (args.command in ("report", "trace") and (not props.has_results or props.stale)):
+            _analyze(scene, stdout)
+        files = {}
+        trace = None
+        if args.command == "trace":
+            result = run_sync(trace_job(scene, Job(), workload=args.workload, view_layer=_view_layer(scene),
+                                        target=args.object))
+            _say(stdout, apply_trace(scene, result))
+            trace = {"workload": result["workload"], "structure": result["structure"],
+                     "rays": len(result["rays"]["origins"]), "build_time": result["build_time"],
+                     "trace_time": result["trace_time"], "plan": result["plan"].to_dict()}
+            if result["workload"] == "CAMERA" and out_dir is not None:
+                from .passes import DEPTH, NORMAL, OBJECT_ID, save_image
+
+                for name, stem in ((DEPTH, "depth"), (NORMAL, "normal"), (OBJECT_ID, "object_id")):
+                    try:
+                        files[stem] = save_image(bpy.data.images[name], out_dir / f"hybrid_raycast_{stem}.png")
+                    except (OSError, RuntimeError) as e:
+                        raise Unwritable(f"unwritable path: cannot save {name} into {out_dir}: {e}") from None
+        if out_dir is not None:
+            files["plot"] = _write_plot(props, out_dir)
+        doc = results_json(props)
+        doc["command"] = args.command
+        if trace is not None:
+            doc["trace"] = trace
+        if files:
+            doc["files"] = files
+        line = f"decision {props.decision}: {doc['summary_line']}"
+        if trace is not None:
+            line = (f"traced {trace['rays']:,} {trace['workload'].lower()} rays with {trace['structure'].upper()} "
+                    f"in {trace['trace_time']:.2f} s; analysis {line}")
+        print(f"{COMMAND} {args.command}: {line}", file=stdout, flush=True)
+    text = json.dumps(doc, indent=2, default=str)
+    if args.json == "-":
+        print(text, file=stdout, flush=True)
+    elif json_path is not None:
+        try:
+            json_path.write_text(text, encoding="utf-8")
+        except OSError as e:
+            raise Unwritable(f"unwritable path: {json_path}: {e.strerror or e}") from None
+        print(f"{COMMAND} {args.command}: wrote {json_path}", file=stdout, flush=True)
+    return EXIT_OK

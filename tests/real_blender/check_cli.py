@@ -1,0 +1,84 @@
+"""The headless CLI in a real Blender: `blender -b FILE.blend -c hybrid_raycast ...`.
+
+Run with plain python3 inside the rootfs after checks.py saved the .blend files:
+    python3 check_cli.py WORK
+The extension is enabled in the user preferences (installed with `-e`), which is what
+registers the command.  Checks the exit codes (0, and 2-6 for each failure, with one
+line from the add-on on stderr) and the JSON of every command.  Writes
+real_blender_cli.json; exits 1 on the first failure.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+WORK = Path(sys.argv[1])
+OUT = WORK / "cli_out"
+results = {}
+
+
+def check(name, ok, detail=""):
+    results[name] = bool(ok)
+    print(f"{'ok  ' if ok else 'FAIL'} {name} {detail}", flush=True)
+    if not ok:
+        (WORK / "real_blender_cli.json").write_text(json.dumps(results, indent=2))
+        sys.exit(1)
+
+
+def blender(blend, *args):
+    cmd = ["blender", "-b"] + ([str(WORK / blend)] if blend else []) + ["-c", "hybrid_raycast", *args]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    ours = [x for x in p.stderr.splitlines() if x.startswith("hybrid_raycast")]
+    return p.returncode, p.stdout, ours, p
+
+
+code, out, err, p = blender("demo.blend", "analyze", "--json", str(WORK / "analyze.json"), "--output", str(OUT))
+check("analyze exits 0", code == 0, f"rc={code} {err} {p.stderr[-500:]}")
+doc = json.loads((WORK / "analyze.json").read_text())
+check("analyze JSON has a decision", doc["decision"] in {"GRID", "BVH", "EMBREE"}, doc["decision"])
+be = doc["break_even"]
+rays = doc["expected_rays"]
+check("the decision follows the break-even",
+      (doc["decision"] == "GRID") == (be["rays"] is None or rays <= be["rays"] * (1 + 1e-6)),
+      f"{doc['decision']} R={rays:.0f} R*={be['rays']}")
+check("analyze JSON: every panel figure",
+      all(k in doc for k in ("summary", "budget", "structures", "calibration", "analyzed_at", "stale", "certain"))
+      and doc["summary"]["triangles"] > 10000 and doc["budget"]["source"] == "RENDER"
+      and doc["budget"]["width"] == 640 and doc["structures"]["grid"]["per_ray"] > 0,
+      f"{doc['summary']['triangles']} triangles")
+check("analyze used the calibration made by checks.py", doc["calibration"]["source"] == "measured", doc["calibration"]["message"])
+check("analyze wrote the plot", (OUT / "hybrid_raycast_plot.png").is_file())
+print("   ", doc["summary_line"])
+
+code, out, err, p = blender("demo.blend", "trace", "--rays", "1e7", "--output", str(OUT))
+check("trace exits 0", code == 0, f"rc={code} {err} {p.stderr[-500:]}")
+tdoc = json.loads((OUT / "hybrid_raycast_trace.json").read_text())
+check("trace JSON: 640x360 camera rays", tdoc["trace"]["rays"] == 640 * 360 and tdoc["trace"]["workload"] == "CAMERA",
+      f"{tdoc['trace']['rays']} {tdoc['trace']['workload']} rays with {tdoc['trace']['structure']}")
+check("trace wrote the passes", all((OUT / f"hybrid_raycast_{s}.png").stat().st_size > 1000
+                                    for s in ("depth", "normal", "object_id")))
+check("--rays sets the budget", tdoc["expected_rays"] == 1e7 and tdoc["budget"]["source"] == "CUSTOM")
+
+code, out, err, p = blender("demo.blend", "report", "--json", "-")
+check("report exits 0", code == 0, f"rc={code} {err}")
+rdoc = json.loads(out[out.index("{\n"):out.rindex("}") + 1])
+check("report prints the analysis JSON", rdoc["decision"] in {"GRID", "BVH", "EMBREE"} and "break_even" in rdoc)
+
+code, out, err, p = blender(None, "calibrate", "--scale", "tiny", "--calibration", str(WORK / "cli_cal.json"))
+check("calibrate exits 0 and writes the file", code == 0 and (WORK / "cli_cal.json").is_file(), f"rc={code} {err}")
+
+for name, blend, args, want, words in (
+    ("bad arguments", "demo.blend", ["analyze", "--rays", "0"], 2, "greater than 0"),
+    ("unknown command", "demo.blend", ["frobnicate"], 2, "invalid choice"),
+    ("no geometry", "empty.blend", ["analyze"], 3, "no geometry"),
+    ("unwritable path", "demo.blend", ["analyze", "--json", "/proc/hrc/x.json"], 4, "unwritable path"),
+    ("invalid geometry", "nan.blend", ["analyze"], 5, "NaN or infinite"),
+    ("nothing to trace", "nocamera.blend", ["trace"], 6, "no camera"),
+):
+    code, out, err, p = blender(blend, *args)
+    check(f"{name}: exit {want} with one line", code == want and len(err) == 1 and words in err[0],
+          f"rc={code} {err}")
+
+(WORK / "real_blender_cli.json").write_text(json.dumps(results, indent=2))
+print(f"CLI: {len(results)} passed, 0 failed")
