@@ -11,15 +11,19 @@ WHEELS := $(shell sed -n 's|^ *"\./\(wheels/[^"]*\.whl\)",*|\1|p' blender_manife
 VERSION := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 ZIP    := dist/hybrid_raycast-$(VERSION).zip
 
-.PHONY: demo test test-fast venv wheels validate extension bench-extract bench-trace clean
+.PHONY: demo test test-fast real-blender venv wheels validate extension bench-extract bench-trace report clean
 
-## The main job: a headless analysis of the built-in demo scene.
+## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
 	$(PY) scripts/demo.py --output out/demo
 
 ## The tests (what CI runs).
 test: $(VENV)/.stamp wheels
 	$(PY) -m pytest -q -ra
+
+## The real-Blender suite: Blender 4.3.2 (Debian trixie rootfs), CLI and GUI; needs root, skips otherwise.
+real-blender: $(ZIP)
+	tests/real_blender/run.sh $(ZIP) out/real_blender
 
 ## The tests without the slower Blender install round-trip.
 test-fast: $(VENV)/.stamp
