@@ -58,5 +58,9 @@ bench-extract: $(VENV)/.stamp
 bench-trace: $(VENV)/.stamp
 	$(PY) scripts/bench_trace.py
 
+## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes.
+report: $(VENV)/.stamp
+	$(PY) scripts/report.py --out docs/report
+
 clean:
 	rm -rf dist out .pytest_cache
