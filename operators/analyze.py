@@ -23,6 +23,7 @@ from .budget import ray_budget
 from .calibrate import load_calibration
 from .extract import NoGeometryError, scene_mesh, scene_summary
 from .jobs import BadInput, InvalidGeometry, Job, JobOperator, NoGeometry
+from .summary import store_summary
 
 RECORD_FORMAT = 1
 NEVER = 3.4028234663852886e38  # ui.properties.BREAK_EVEN_NEVER (float32's largest value)
@@ -131,13 +132,7 @@ def analysis_record(scene, summary, budget, settings, calibration_info, plan, *,
 
 def store_results(props, record):
     """Copy an analysis record into ``scene.hybrid_raycast`` (the only place that does)."""
-    s = record["summary"]
-    props.triangle_count = s["triangles"]
-    props.object_count = s["objects"]
-    props.instance_count = s["instances"]
-    props.extraction_time = s["extraction_seconds"]
-    props.bounds_min, props.bounds_max = s["bounds"]
-    props.has_summary = True
+    store_summary(props, record["summary"])
     props.decision = record["decision"]
     props.decision_certain = record["certain"]
     props.analyzed_rays = record["expected_rays"]
