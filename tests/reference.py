@@ -210,23 +210,18 @@ def reference_for_mesh(mesh, origins, directions, tmin=0.0, tmax=np.inf) -> RefH
 
 #: the structures that share the numpy kernel and must agree hit for hit
 NUMPY_KINDS = ("brute", "grid", "bvh")
-_MODULE_OF = {"brute": "brute", "grid": "grid", "bvh": "bvh", "embree": "embree"}
 
 
 def kind_missing_reason(kind):
     """Why ``kind`` cannot be tested here (None when it can).
 
-    A structure whose module file does not exist yet is skipped; one whose module
-    exists but fails to import is *not* skipped (the test then fails loudly).
+    Only Embree is optional (embreex may be missing); every numpy structure must exist,
+    so a missing module fails the test instead of skipping it.
     """
-    import importlib.util
-
     from hybrid_raycast import core
 
     if kind == "embree" and not core.embree_available():
         return "embreex is not installed"
-    if importlib.util.find_spec(f"hybrid_raycast.core.{_MODULE_OF[kind]}") is None:
-        return f"core/{_MODULE_OF[kind]}.py does not exist yet"
     return None
 
 
@@ -240,9 +235,6 @@ def kind_params(kinds):
         out.append(pytest.param(k, marks=pytest.mark.skip(reason=why)) if why else pytest.param(k))
     return out
 
-
-def available(kinds):
-    return [k for k in kinds if kind_missing_reason(k) is None]
 
 
 def icosphere(subdivisions=1, radius=1.0):

@@ -3,7 +3,6 @@ small end-to-end plan whose trace equals brute force."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 
@@ -19,8 +18,6 @@ from hybrid_raycast.core.mesh import TriangleMesh
 from hybrid_raycast.core.plan import plan, plan_from_timings, trace_online, trace_planned
 from hybrid_raycast.core.rays import uniform_rays
 
-HAVE = {k: importlib.util.find_spec(f"hybrid_raycast.core.{k}") is not None for k in ("grid", "bvh")}
-needs_structures = pytest.mark.skipif(not (HAVE["grid"] and HAVE["bvh"]), reason="core/grid.py or core/bvh.py not written yet")
 
 
 def cal_of(**fits) -> Calibration:
@@ -223,7 +220,6 @@ def _assert_same(h, ref, what):
     assert np.array_equal(h.t, ref.t), f"{what}: hit distances differ from brute force"
 
 
-@needs_structures
 def test_small_plan_reuses_its_grid_and_matches_brute_force():
     mesh = scenes.torus(1500)
     o, d = uniform_rays(mesh, 600, seed=7)
@@ -236,7 +232,6 @@ def test_small_plan_reuses_its_grid_and_matches_brute_force():
     json.dumps(p.to_dict(), allow_nan=False)
 
 
-@needs_structures
 def test_small_plan_builds_the_bvh_once_when_it_wins_and_matches_brute_force():
     mesh = scenes.sphere(2000)
     o, d = uniform_rays(mesh, 600, seed=8)
@@ -249,7 +244,6 @@ def test_small_plan_builds_the_bvh_once_when_it_wins_and_matches_brute_force():
     assert p.structure is first and [e["build_time"] > 0 for e in p.executed] == [True, False, False], p.executed
 
 
-@needs_structures
 def test_plan_reuses_a_grid_passed_in_and_refuses_one_over_another_mesh():
     mesh = scenes.city(800)
     g = build(mesh, "grid")
@@ -259,7 +253,6 @@ def test_plan_reuses_a_grid_passed_in_and_refuses_one_over_another_mesh():
         plan(scenes.city(900), 10, cal_of(bvh=(1e-7, 1e-7)), grid=g)
 
 
-@needs_structures
 def test_plan_notes_embree_skipped_when_embreex_is_missing(monkeypatch):
     from hybrid_raycast.core import embree
 
@@ -269,7 +262,6 @@ def test_plan_notes_embree_skipped_when_embreex_is_missing(monkeypatch):
     assert p.decision in ("GRID", "BVH")
 
 
-@needs_structures
 def test_online_end_to_end_switches_and_matches_brute_force():
     mesh = scenes.scatter(1600)
     o, d = uniform_rays(mesh, 900, seed=9)
