@@ -58,9 +58,10 @@ bench-extract: $(VENV)/.stamp
 bench-trace: $(VENV)/.stamp
 	$(PY) scripts/bench_trace.py
 
-## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes.
+## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes
+## (about 8 minutes; REPORT_ARGS=--quick for a 5-second smoke run).
 report: $(VENV)/.stamp
-	$(PY) scripts/report.py --out docs/report
+	$(PY) scripts/report.py $(REPORT_ARGS)
 
 clean:
 	rm -rf dist out .pytest_cache

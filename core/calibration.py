@@ -7,8 +7,13 @@ hierarchical structure and shoot M rays in each scene i, then
     c_R = (1/s) sum_i T_R(i) / (M(i) log2 N(i))      (per-ray constant)
 
 so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
-t ~ c_R log2 N per ray.  This module fits the same form for every candidate ('bvh',
-'embree'), keeps each scene's own values, and takes the spread across scenes as the
+t ~ c_R log2 N per ray.  ``model='affine'`` adds a fixed cost to each,
+T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative residuals):
+on held-out scenes it predicts the BVH's build and per-ray times far better, but the
+break-even improves only once the plan's grid sample is corrected for its small batch
+(docs/report/report.md, issue 4), so 'paper' stays the default.
+
+This module fits the same form for every candidate ('bvh', 'embree'), keeps each scene's own values, and takes the spread across scenes as the
 constants' interval: ``low``/``high`` are the 10th/90th percentiles of the per-scene
 values (numpy's linear interpolation; with few scenes that is close to min/max), widened
 if needed so that low <= mean <= high.  The grid is not fitted (the plan measures it on
@@ -158,10 +163,56 @@ def _estimate_paper(fit: KindFit, kind: str, n: int) -> Estimate:
     return Estimate(kind, fit.c_B * a, fit.c_B_low * a, fit.c_B_high * a, fit.c_R * b, fit.c_R_low * b, fit.c_R_high * b)
 
 
-#: model name -> (fit per kind, estimate).  A refinement (say an affine per-ray cost
-#: a + b log2 N) adds an entry here and keeps its parameters in KindFit.extra; it is worth
-#: adding only where the report shows it cuts the held-out break-even error.
-MODELS = {"paper": (_fit_paper, _estimate_paper)}
+def _affine_lsq(x, y) -> tuple[float, float]:
+    """(a, c) >= 0 minimising sum ((a + c x_i) / y_i - 1)^2: least squares on relative
+    residuals, so a 500-triangle scene weighs as much as a 1M one; a < 0 falls back on a = 0."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    ok = (y > 0) & np.isfinite(y) & (x > 0)
+    x, y = x[ok], y[ok]
+    if x.size < 3:  # too few scenes to tell a fixed cost from a slope: the paper's mean ratio
+        return 0.0, float(np.mean(y / x)) if x.size else 0.0
+    (a, c), *_ = np.linalg.lstsq(np.stack([1 / y, x / y], axis=1), np.ones_like(y), rcond=None)
+    if not (a >= 0 and c > 0):
+        a, c = 0.0, float(np.sum(x / y) / np.sum((x / y) ** 2))
+    return float(a), float(c)
+
+
+def _fit_affine(records: list[SceneRecord], kind: str, spread) -> KindFit:
+    """T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N: the paper's terms plus a fixed
+    cost each (per-call overheads that N log2 N cannot carry inflate the ratio on small
+    scenes).  The interval scales the slopes by the spread of measured / fitted over the scenes."""
+    have = [r for r in records if kind in r.kinds]
+    xb, yb = [nlog2n(r.triangles) for r in have], [r.kinds[kind].build_time for r in have]
+    xr, yr = [log2n(r.triangles) for r in have], [r.kinds[kind].per_ray for r in have]
+    ab, cb = _affine_lsq(xb, yb)
+    ar, cr = _affine_lsq(xr, yr)
+
+    def spread_of(x, y, a, c):
+        q = [yi / (a + c * xi) for xi, yi in zip(x, y) if a + c * xi > 0]
+        if not q:
+            return [1.0, 1.0]
+        lo, hi = (float(v) for v in np.percentile(q, spread))
+        return [min(lo, 1.0), max(hi, 1.0)]
+
+    qb, qr = spread_of(xb, yb, ab, cb), spread_of(xr, yr, ar, cr)
+    return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have), extra={"a_B": ab, "a_R": ar})
+
+
+def _estimate_affine(fit: KindFit, kind: str, n: int) -> Estimate:
+    """a + c x with the interval on the slope; with no fixed terms (a = 0) this is 'paper'."""
+    x, y = nlog2n(n), log2n(n)
+    a_b, a_r = fit.extra.get("a_B", 0.0), fit.extra.get("a_R", 0.0)
+    return Estimate(kind, a_b + fit.c_B * x, a_b + fit.c_B_low * x, a_b + fit.c_B_high * x,
+                    a_r + fit.c_R * y, a_r + fit.c_R_low * y, a_r + fit.c_R_high * y)
+
+
+#: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
+#: KindFit.extra.  'affine' (issue 4, item 5) cuts the leave-one-out break-even error on
+#: the calibration scenes and the build / per-ray errors on the real meshes, but with the
+#: plan's uncorrected grid sample its break-even error on the real meshes is larger than
+#: 'paper''s (whose overestimated per-ray time happens to cancel the sample's bias), so
+#: 'paper' stays the default (docs/report/report.md).
+MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine)}
 
 
 def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread=DEFAULT_SPREAD) -> dict[str, KindFit]:
