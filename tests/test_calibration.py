@@ -6,7 +6,6 @@ the size asked for, closed where they should be.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 
@@ -29,7 +28,6 @@ from hybrid_raycast.core.calibration import (
     load_or_default,
 )
 
-HAVE = {k: importlib.util.find_spec(f"hybrid_raycast.core.{k}") is not None for k in ("grid", "bvh")}
 
 
 def hand_calibration(**kw) -> Calibration:
@@ -246,7 +244,6 @@ def test_calibrate_skips_embree_with_a_note_when_embreex_is_missing(monkeypatch)
     assert "embree" not in cal.fits and any("embreex is not installed" in n for n in cal.notes), cal.notes
 
 
-@pytest.mark.skipif(not (HAVE["grid"] and HAVE["bvh"]), reason="core/grid.py or core/bvh.py not written yet")
 def test_calibrate_tiny_set_records_the_grid_but_fits_only_the_candidates():
     cal = calibrate(S.calibration_set("tiny")[:3], kinds=("bvh",), rays_per_scene=200)
     assert set(cal.fits) == {"bvh"}, f"fitted {set(cal.fits)}"
@@ -255,7 +252,6 @@ def test_calibrate_tiny_set_records_the_grid_but_fits_only_the_candidates():
         assert all(m.build_time > 0 and m.trace_time > 0 for m in r.kinds.values())
 
 
-@pytest.mark.skipif(not (HAVE["grid"] and HAVE["bvh"]), reason="core/grid.py or core/bvh.py not written yet")
 def test_measure_break_even_uses_the_estimates_formula_on_measured_times():
     be = C.measure_break_even(S.torus(2000), 500, kinds=("grid", "bvh"))
     g, b = be.measurements["grid"], be.measurements["bvh"]
