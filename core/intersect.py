@@ -30,7 +30,7 @@ class Rays:
     directions: np.ndarray  # (M, 3) float32
     tmin: np.ndarray  # (M,) float32
     tmax: np.ndarray  # (M,) float32
-    kx: np.ndarray  # (M,) intp: the three axes, kz the dominant one
+    kx: np.ndarray  # (M,) int8: the three axes, kz the dominant one
     ky: np.ndarray
     kz: np.ndarray
     shear: np.ndarray  # (M, 3) float32: Sx, Sy, Sz
@@ -94,9 +94,10 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
     ad = np.abs(d32)
-    kz = np.argmax(ad, axis=1)
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
+    # int8 axis indices: 3 bytes a ray instead of 24 (240 MB saved at 10M rays)
+    kz = np.argmax(ad, axis=1).astype(np.int8)
+    kx = ((kz + 1) % 3).astype(np.int8)
+    ky = ((kx + 1) % 3).astype(np.int8)
     rows = np.arange(m)
     dz = d32[rows, kz]
     # Keep the winding of the sheared frame: swap x and y when the dominant axis is negative.
