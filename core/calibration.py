@@ -7,11 +7,11 @@ hierarchical structure and shoot M rays in each scene i, then
     c_R = (1/s) sum_i T_R(i) / (M(i) log2 N(i))      (per-ray constant)
 
 so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
-t ~ c_R log2 N per ray.  ``model='affine'`` adds a fixed cost to each,
-T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative residuals):
-on held-out scenes it predicts the BVH's build and per-ray times far better, but the
-break-even improves only once the plan's grid sample is corrected for its small batch
-(docs/report/report.md, issue 4), so 'paper' stays the default.
+t ~ c_R log2 N per ray (``model='paper'``).  The default, ``model='affine'``, adds a fixed
+cost to each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on
+relative residuals): per-call overheads that N log2 N cannot carry inflate the paper's
+ratios on small scenes, so its constants overestimate large ones (docs/report/report.md,
+issue 4, compares the two on held-out scenes).
 
 This module fits the same form for every candidate ('bvh', 'embree'), keeps each scene's own values, and takes the spread across scenes as the
 constants' interval: ``low``/``high`` are the 10th/90th percentiles of the per-scene
@@ -27,9 +27,12 @@ message is one line; ``load_or_default`` never raises and falls back on the ship
 defaults (``default_calibration.json``, labelled ``source='shipped defaults'``) or on a
 fresh calibration when asked.
 
-Timings: ``time.perf_counter`` around one build and one trace per scene and structure.
-Ray batches are traced spread over the structure's threads (see ``time_trace``) so that a
-sample costs per ray what a large workload does.
+Timings: ``time.perf_counter`` around one build and one trace per scene and structure,
+each batch traced as ``trace`` runs it (``time_trace``).  The default 131,072 rays per
+scene fill both threads of every structure, so the per-ray constants are a large
+workload's.  The grid is also timed on samples of K = 1,024 to 65,536 rays: a plan's
+K-ray sample pays the grid's fixed per-batch cost over few rays, and the per-scene ratio
+(large-workload time / sample time) corrects it (``Calibration.grid_sample_ratio``).
 """
 
 from __future__ import annotations
@@ -51,14 +54,19 @@ from .accel import Accel, build
 from .mesh import TriangleMesh
 
 #: bump when the JSON layout or the meaning of a field changes
-CALIBRATION_FORMAT = 1
+CALIBRATION_FORMAT = 2
 #: the constants shipped with the package, measured by ``calibrate()`` on the default set
 DEFAULT_PATH = Path(__file__).with_name("default_calibration.json")
 #: the model fitted by ``fit``; see MODELS
-DEFAULT_MODEL = "paper"
+DEFAULT_MODEL = "affine"
 DEFAULT_SPREAD = (10.0, 90.0)
-#: rays per scene for each calibration scale
-RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 50000}
+#: rays per scene for each calibration scale.  The default is two chunks of the BVH
+#: (2 x 65,536 rays), so that the measured time per ray is a large workload's, spread
+#: over the structure's threads like one
+RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17}
+#: sample sizes K at which calibration times the grid on each scene, to correct a plan's
+#: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
+SAMPLE_LADDER = (1024, 4096, 16384, 65536)
 #: structures whose per-scene times are recorded, and the ones whose constants are fitted
 RECORDED_ONLY = ("grid",)
 
@@ -101,6 +109,13 @@ class SceneRecord:
     triangles: int
     rays: int
     kinds: dict[str, Measurement] = field(default_factory=dict)
+    #: the grid's time per ray on a batch of K rays, {K: seconds}: what a plan's sample costs
+    grid_samples: dict[int, float] = field(default_factory=dict)
+
+    def grid_sample_ratio(self, k: int) -> float | None:
+        """Large-workload grid time per ray over the K-ray sample's, or None if not measured."""
+        g, s = self.kinds.get("grid"), self.grid_samples.get(k)
+        return g.per_ray / s if g is not None and s else None
 
     def c_B(self, kind: str) -> float:
         """This scene's build constant T_B / (N log2 N)."""
@@ -207,11 +222,9 @@ def _estimate_affine(fit: KindFit, kind: str, n: int) -> Estimate:
 
 
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
-#: KindFit.extra.  'affine' (issue 4, item 5) cuts the leave-one-out break-even error on
-#: the calibration scenes and the build / per-ray errors on the real meshes, but with the
-#: plan's uncorrected grid sample its break-even error on the real meshes is larger than
-#: 'paper''s (whose overestimated per-ray time happens to cancel the sample's bias), so
-#: 'paper' stays the default (docs/report/report.md).
+#: KindFit.extra.  'affine' (issue 4, item 5) is the default: it cuts the leave-one-out
+#: break-even error on the calibration scenes and the build / per-ray errors on the real
+#: meshes (docs/report/report.md has both models side by side).
 MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine)}
 
 
@@ -309,6 +322,30 @@ class Calibration:
             raise KeyError(f"no calibration constants for {kind!r} (calibrated: {', '.join(self.fits) or 'none'})")
         return MODELS[self.model][1](self.fits[kind], kind, n)
 
+    def grid_sample_ratio(self, k: int) -> tuple[float, float, float]:
+        """(median, low, high) of the per-scene ratio large-workload grid time per ray /
+        time per ray on a K-ray sample, interpolated in log2 K between the measured sample
+        sizes (clamped at the ends); low/high are the calibration's spread percentiles.
+
+        A plan multiplies its sample's time per ray by it: a small batch pays the lockstep
+        traversal's fixed per-step cost over few rays, so it overstates a large workload's
+        time per ray (measured 1.2-1.5x at K = 16,384, over 3x at K = 1,024).  (1, 1, 1)
+        when the calibration holds no grid samples.
+        """
+        ladder = sorted({kk for r in self.scenes for kk in r.grid_samples})
+        if not ladder:
+            return 1.0, 1.0, 1.0
+        per_k = []
+        for kk in ladder:
+            q = [x for x in (r.grid_sample_ratio(kk) for r in self.scenes) if x is not None and math.isfinite(x) and x > 0]
+            med = float(np.median(q))
+            lo, hi = (float(v) for v in np.percentile(q, self.spread))
+            per_k.append((min(lo, med), med, max(hi, med)))
+        x = np.log2(np.asarray(ladder, np.float64))
+        xk = math.log2(max(int(k), 1))
+        lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
+        return med, lo, hi
+
     def describe(self) -> str:
         """One line per structure: the constants and their interval, in ns."""
         lines = [f"calibration ({self.source}, {self.model} model, {len(self.scenes)} scenes, {self.created or 'undated'})"]
@@ -345,7 +382,8 @@ class Calibration:
         try:
             fits = {str(k): KindFit(**v) for k, v in d["fits"].items()}
             scenes = [
-                SceneRecord(s["name"], int(s["triangles"]), int(s["rays"]), {k: Measurement(**m) for k, m in s["kinds"].items()})
+                SceneRecord(s["name"], int(s["triangles"]), int(s["rays"]), {k: Measurement(**m) for k, m in s["kinds"].items()},
+                            {int(k): float(v) for k, v in s.get("grid_samples", {}).items()})
                 for s in d.get("scenes", [])
             ]
             model = str(d.get("model", DEFAULT_MODEL))
@@ -463,28 +501,17 @@ def load_or_default(path, *, recalibrate: bool = False, progress=None, **calibra
 # -- measuring ---------------------------------------------------------------------------------
 
 def time_trace(accel: Accel, origins, directions, tmin=0.0, tmax=np.inf):
-    """Trace and time a batch: (Hits, seconds).
+    """Trace and time a batch as a caller would: (Hits, seconds).
 
-    A batch smaller than the structure's chunk times its thread count would run as one
-    chunk on one thread, while a large workload runs on all of them; so the batch is
-    split into ``threads`` chunks for the measurement (the structure's own chunk size is
-    restored afterwards).
+    The batch runs exactly as ``accel.trace`` runs it (its chunks, its threads).  Splitting
+    a small batch over the threads does not make it cost what a large workload does: with
+    a few thousand rays per thread the numpy calls of the two threads contend for the GIL
+    and the time per ray doubled (measured on the real meshes at K = 16,384).  A plan
+    corrects its small sample with ``Calibration.grid_sample_ratio`` instead.
     """
-    m = len(origins)
-    own = accel.__dict__.get("chunk_size", None)
-    per = -(-m // max(accel.threads, 1))
-    if accel.threads > 1 and 0 < per < accel.chunk_size:
-        accel.chunk_size = per
-    try:
-        t0 = time.perf_counter()
-        hits = accel.trace(origins, directions, tmin, tmax)
-        dt = time.perf_counter() - t0
-    finally:
-        if own is None:
-            accel.__dict__.pop("chunk_size", None)
-        else:
-            accel.chunk_size = own
-    return hits, dt
+    t0 = time.perf_counter()
+    hits = accel.trace(origins, directions, tmin, tmax)
+    return hits, time.perf_counter() - t0
 
 
 def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None, config=None) -> Measurement:
@@ -569,6 +596,23 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
     return BreakEven(mesh.triangle_count, len(origins), meas, rc)
 
 
+def _measure_grid(mesh, origins, directions, ladder, threads, config, seed):
+    """The grid's Measurement on the calibration rays, and its time per ray on fresh
+    uniform samples of each size in ``ladder`` (what a plan's K-sample costs per ray)."""
+    from .rays import uniform_rays
+
+    cfg = dict(config or {})
+    if threads is not None:
+        cfg.setdefault("threads", threads)
+    grid = build(mesh, "grid", **cfg)
+    _, dt = time_trace(grid, origins, directions)
+    samples = {}
+    for k in ladder:
+        o, d = uniform_rays(mesh, int(k), seed=seed + int(k))
+        samples[int(k)] = time_trace(grid, o, d)[1] / int(k)
+    return Measurement(float(grid.build_time), float(dt), int(len(origins)), int(grid.threads)), samples
+
+
 def _size_hint(factory) -> float:
     """Expected work of a scene for the progress fraction: N log2 N of its size."""
     if isinstance(factory, TriangleMesh):
@@ -591,6 +635,7 @@ def calibrate(
     model: str = DEFAULT_MODEL,
     spread=DEFAULT_SPREAD,
     seed: int = 0,
+    sample_ladder=SAMPLE_LADDER,
 ) -> Calibration:
     """Measure every structure in ``kinds`` on each scene and fit the model.
 
@@ -598,7 +643,9 @@ def calibrate(
     rays_per_scene: M, the paper's uniform random rays per scene (default by scale).
     progress: ``callback(fraction in [0, 1], message)``, called before each structure.
     threads: passed to every structure (None: each structure's default).
-    grid: also measure the grid per scene (recorded for the report; the grid is not fitted).
+    grid: also measure the grid per scene: its time per ray on the calibration rays and on
+    samples of each size in ``sample_ladder``, which give ``Calibration.grid_sample_ratio``
+    (the grid's constants are not fitted: a plan measures the grid on its own scene).
     configs: optional {kind: config dict} passed to ``build``.
     """
     from . import scenes as scene_lib
@@ -637,7 +684,11 @@ def calibrate(
         rec = SceneRecord(name, mesh.triangle_count, m_rays)
         for j, kind in enumerate(measured):
             report(i, j, f"scene {i + 1}/{len(scenes)}: {name} ({mesh.triangle_count:,} triangles), {kind}")
-            rec.kinds[kind] = measure(mesh, kind, origins, directions, threads=threads, config=(configs or {}).get(kind))
+            if kind == "grid":
+                rec.kinds[kind], rec.grid_samples = _measure_grid(mesh, origins, directions, sample_ladder, threads,
+                                                                  (configs or {}).get(kind), seed + 7919 * (i + 1))
+            else:
+                rec.kinds[kind] = measure(mesh, kind, origins, directions, threads=threads, config=(configs or {}).get(kind))
         records.append(rec)
         del mesh
     fits = fit(records, fitted, model=model, spread=spread)

@@ -2,7 +2,9 @@
 
 Hapala, Karlik and Havran (2011), section 3 ("application"):
   1. build the uniform grid, timed (T_B^G);
-  2. trace K representative rays through it: t_G, the grid's measured time per ray;
+  2. trace K representative rays through it: t_G, the grid's measured time per ray
+     (times the calibration's small-batch ratio: a K-ray batch pays the lockstep
+     traversal's fixed per-step cost over few rays, see ``Calibration.grid_sample_ratio``);
   3. estimate each hierarchical structure H from the calibration:
      T_B^H ~ c_B N log2 N and t_H ~ c_R log2 N;
   4. the grid is built already (a sunk cost), so H pays for itself after
@@ -11,7 +13,13 @@ Hapala, Karlik and Havran (2011), section 3 ("application"):
 With several candidates (numpy BVH, Embree) the grid stays cheapest exactly while
 R <= min_H R*_H, and beyond that the candidate with the least T_B^H + R t_H wins.  The
 calibration's spread gives each R* an interval: R*_low uses the low constants (cheap
-build, fast rays), R*_high the high ones, so R*_low <= R* <= R*_high.
+build, fast rays) and the high end of the grid's corrected time, R*_high the opposite, so
+R*_low <= R* <= R*_high.
+
+When the workload's own rays are given, the K sample rays are drawn from them and their
+answers kept: ``Plan.trace`` on those same arrays traces only the other rays (with the
+grid or the numpy BVH, which agree bit for bit; Embree retraces everything).  A workload
+of at most K rays is therefore traced whole while planning, and costs nothing more.
 
 Online mode (``trace_online``), which needs no ray count: trace with the grid in batches
 and switch to H once the grid's accumulated trace time reaches H's estimated build
@@ -117,6 +125,11 @@ class Plan:
     break_even_kind: str | None
     decision: str
     certain: bool
+    #: the grid's time per ray on the K samples, and the small-batch ratio applied to it
+    grid_sample_per_ray: float = 0.0
+    grid_sample_ratio: float = 1.0
+    #: sample rays that came from the workload and whose answers the plan keeps
+    workload_samples: int = 0
     estimate_time: float = 0.0
     plan_time: float = 0.0
     grid_reused: bool = False
@@ -129,6 +142,8 @@ class Plan:
     mesh: TriangleMesh | None = field(default=None, repr=False)
     configs: dict = field(default_factory=dict, repr=False)
     structure: Accel | None = field(default=None, repr=False)
+    #: (origins, directions, sample indices, their Hits) when the samples came from the workload
+    sample: tuple | None = field(default=None, repr=False)
 
     @property
     def chosen(self) -> str:
@@ -150,7 +165,9 @@ class Plan:
             "candidates": {k: c.to_dict() for k, c in self.candidates.items()},
             "break_even": _json_float(self.break_even), "break_even_low": _json_float(self.break_even_low),
             "break_even_high": _json_float(self.break_even_high), "break_even_kind": self.break_even_kind,
-            "decision": self.decision, "certain": self.certain, "estimate_time": self.estimate_time,
+            "decision": self.decision, "certain": self.certain, "grid_sample_per_ray": self.grid_sample_per_ray,
+            "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples,
+            "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
             "executed": [dict(e) for e in self.executed],
@@ -182,13 +199,70 @@ class Plan:
             self.executed.append({"kind": self.chosen, "build_time": self.structure.build_time, "trace_time": 0.0, "rays": 0})
         return self.structure
 
+    def reusable_samples(self, origins, directions):
+        """(indices, Hits) of the sample rays already answered, when ``origins`` and
+        ``directions`` are the very arrays the plan sampled and the chosen structure
+        answers bit for bit like the grid (grid, numpy BVH); else None."""
+        if self.sample is None or self.chosen not in ("grid", "bvh"):
+            return None
+        so, sd, idx, hits = self.sample
+        if origins is not so or directions is not sd:
+            return None
+        return idx, hits
+
+    def split(self, origins, directions, tmin=0.0, tmax=np.inf):
+        """(rest, (origins, directions, tmin, tmax) of the rays still to trace).
+
+        ``rest`` indexes the workload rays the plan has not answered yet, or is None when
+        none of its sample can be reused (then the rays come back as given)."""
+        reuse = self.reusable_samples(origins, directions)
+        if reuse is None:
+            return None, (origins, directions, tmin, tmax)
+        m = len(origins)
+        keep = np.ones(m, bool)
+        keep[reuse[0]] = False
+        rest = np.flatnonzero(keep)
+        o, d = np.asarray(origins), np.asarray(directions)
+        return rest, (o[rest], d[rest], _pick(tmin, rest, m), _pick(tmax, rest, m))
+
+    def merge(self, m: int, rest, part):
+        """The whole workload's answers from ``part`` (the answers for ``split``'s ``rest``)
+        and the kept sample: Hits for Hits, a boolean array for ``occluded`` answers."""
+        if rest is None:
+            return part
+        idx, done = self.sample[2], self.sample[3]
+        if isinstance(part, Hits):
+            out = Hits.empty(m)
+            for name in ("t", "triangle", "u", "v"):
+                getattr(out, name)[idx] = getattr(done, name)
+                getattr(out, name)[rest] = getattr(part, name)
+            return out
+        out = np.zeros(m, bool)
+        out[idx] = done.hit  # a nearest hit within [tmin, tmax] is exactly an occluder
+        out[rest] = np.asarray(part, bool)
+        return out
+
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
-        """Shoot the workload with the chosen structure (building a BVH only when chosen)."""
+        """Shoot the workload with the chosen structure (building a BVH only when chosen).
+
+        Given the arrays ``plan()`` sampled, the sample rays keep their answers and only
+        the others are traced."""
         acc = self.accel()
         t0 = time.perf_counter()
-        hits = acc.trace(origins, directions, tmin, tmax)
-        self.executed.append({"kind": acc.kind, "build_time": 0.0, "trace_time": time.perf_counter() - t0, "rays": len(hits)})
+        rest, rays = self.split(origins, directions, tmin, tmax)
+        m = len(origins)
+        traced = m if rest is None else len(rest)
+        part = acc.trace(*rays) if traced or rest is None else Hits.empty(0)
+        hits = self.merge(m, rest, part)
+        self.executed.append({"kind": acc.kind, "build_time": 0.0, "trace_time": time.perf_counter() - t0,
+                              "rays": traced, "reused": m - traced})
         return hits
+
+
+def _pick(x, sel, m):
+    """A per-ray bound's entries at ``sel``; a scalar as it is."""
+    x = np.asarray(x)
+    return x[sel] if x.ndim == 1 and len(x) == m else x
 
 
 def trace_planned(plan: Plan, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
@@ -203,6 +277,8 @@ def plan_from_timings(
     grid_build_time: float,
     grid_per_ray: float,
     *,
+    grid_per_ray_low: float | None = None,
+    grid_per_ray_high: float | None = None,
     kinds=("grid", "bvh", "embree"),
     samples: int = 0,
     notes=(),
@@ -211,13 +287,16 @@ def plan_from_timings(
 
     Pure: no structure is built or traced, so tests can check the break-even on known
     numbers.  ``kinds`` other than 'grid' are candidates; those the calibration has no
-    constants for are skipped with a note.
+    constants for are skipped with a note.  grid_per_ray_low/high: the interval of the
+    grid's time per ray (default: the point value).
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
     n = int(triangles)
+    g_lo = grid_per_ray if grid_per_ray_low is None else min(grid_per_ray_low, grid_per_ray)
+    g_hi = grid_per_ray if grid_per_ray_high is None else max(grid_per_ray_high, grid_per_ray)
     cands = {"grid": Candidate("grid", grid_build_time, grid_build_time, grid_build_time,
-                               grid_per_ray, grid_per_ray, grid_per_ray, measured=True)}
+                               grid_per_ray, g_lo, g_hi, measured=True)}
     for kind in kinds:
         if kind == "grid":
             continue
@@ -228,9 +307,9 @@ def plan_from_timings(
         cands[kind] = Candidate(
             kind, e.build, e.build_low, e.build_high, e.per_ray, e.per_ray_low, e.per_ray_high, measured=False,
             break_even=_break_even(e.build, grid_per_ray, e.per_ray),
-            # the low end: cheap build and fast rays; the high end: dear build, slow rays
-            break_even_low=_break_even(e.build_low, grid_per_ray, e.per_ray_low),
-            break_even_high=_break_even(e.build_high, grid_per_ray, e.per_ray_high),
+            # the low end: cheap build, fast rays, a slow grid; the high end: the opposite
+            break_even_low=_break_even(e.build_low, g_hi, e.per_ray_low),
+            break_even_high=_break_even(e.build_high, g_lo, e.per_ray_high),
         )
     hds = [c for k, c in cands.items() if k != "grid"]
     if n == 0:
@@ -238,7 +317,7 @@ def plan_from_timings(
         hds = []
     if hds:
         first = min(hds, key=lambda c: (c.break_even, c.kind))
-        be, be_kind = first.break_even, first.kind
+        be, be_kind = first.break_even, (first.kind if math.isfinite(first.break_even) else None)
         be_low = min(c.break_even_low for c in hds)
         be_high = min(c.break_even_high for c in hds)
     else:
@@ -259,7 +338,9 @@ def plan_from_timings(
 
 
 def _sample_rays(mesh, rays, k, seed):
-    """K representative rays: a random subset of the user's rays, else the paper's uniform ones."""
+    """K representative rays: a random subset of the user's rays, else the paper's uniform ones.
+
+    Returns (origins, directions, tmin, tmax, what, indices into the workload or None)."""
     from .rays import uniform_rays
 
     rng = np.random.default_rng(seed)
@@ -267,20 +348,17 @@ def _sample_rays(mesh, rays, k, seed):
         rays = None  # an empty workload says nothing about the grid: sample uniformly
     if rays is None:
         o, d = uniform_rays(mesh, k, seed=rng)
-        return o, d, 0.0, np.inf, "uniform"
+        return o, d, 0.0, np.inf, "uniform", None
     rays = tuple(rays)
     if len(rays) not in (2, 4):
         raise ValueError("rays must be (origins, directions) or (origins, directions, tmin, tmax)")
     o, d = np.asarray(rays[0]), np.asarray(rays[1])
     tmin, tmax = (rays[2], rays[3]) if len(rays) == 4 else (0.0, np.inf)
     m = len(o)
-    idx = np.sort(rng.choice(m, size=k, replace=False)) if k < m else np.arange(m)
-
-    def pick(x):
-        x = np.asarray(x)
-        return x[idx] if x.ndim == 1 and len(x) == m else x
-
-    return o[idx], d[idx], pick(tmin), pick(tmax), "the given rays"
+    if k < m:
+        idx = np.sort(rng.choice(m, size=k, replace=False))
+        return o[idx], d[idx], _pick(tmin, idx, m), _pick(tmax, idx, m), "the given rays", idx
+    return o, d, tmin, tmax, "the given rays (all of them)", np.arange(m)
 
 
 def plan(
@@ -324,17 +402,26 @@ def plan(
             raise ValueError("the grid passed to plan() was built over another mesh")
         reused = True
     t1 = time.perf_counter()
+    sample, idx = None, None
     if mesh.triangle_count:
-        o, d, tmin, tmax, what = _sample_rays(mesh, rays, k, seed)
-        _, dt = time_trace(grid, o, d, tmin, tmax)
+        o, d, tmin, tmax, what, idx = _sample_rays(mesh, rays, k, seed)
+        sample, dt = time_trace(grid, o, d, tmin, tmax)
         k = len(o)
-        t_grid = dt / max(k, 1)
+        t_sample = dt / max(k, 1)
     else:
-        k, t_grid, what = 0, 0.0, "none"
-    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), t_grid,
+        k, t_sample, what = 0, 0.0, "none"
+    ratio, ratio_lo, ratio_hi = calibration.grid_sample_ratio(k) if k else (1.0, 1.0, 1.0)
+    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), t_sample * ratio,
+                          grid_per_ray_low=t_sample * ratio_lo, grid_per_ray_high=t_sample * ratio_hi,
                           kinds=kinds, samples=k, notes=notes)
+    p.grid_sample_per_ray, p.grid_sample_ratio = t_sample, ratio
     if rays is not None or k:
-        p.notes.append(f"grid time per ray from {k:,} sample rays ({what})")
+        p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
+                       f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")
+    if idx is not None and k:
+        # keep the sample's answers: Plan.trace on the same arrays traces only the other rays
+        p.sample = (rays[0], rays[1], idx, sample)
+        p.workload_samples = k
     if reused:
         p.notes.append("grid reused (built before this plan)")
     p.estimate_time = time.perf_counter() - t1

@@ -246,7 +246,8 @@ def _run(args, stdout) -> int:
             _say(stdout, apply_trace(scene, result))
             trace = {"workload": result["workload"], "structure": result["structure"],
                      "rays": len(result["rays"]["origins"]), "build_time": result["build_time"],
-                     "trace_time": result["trace_time"], "plan": result["plan"].to_dict()}
+                     "trace_time": result["trace_time"], "rays_traced_after_plan": result["traced"],
+                     "plan": result["plan"].to_dict()}
             if result["workload"] == "CAMERA" and out_dir is not None:
                 from .passes import DEPTH, NORMAL, OBJECT_ID, save_image
 

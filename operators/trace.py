@@ -42,9 +42,14 @@ def _chunked(job: Job, fn, o, d, tmin, tmax, start: float, span: float):
     return parts
 
 
-def _trace_all(job, acc, rays, any_hit):
+def _trace_all(job, acc, rays, any_hit, plan=None):
+    """Every ray of the workload through ``acc``, except the plan's sample rays whose
+    answers it kept (``Plan.split`` / ``Plan.merge``)."""
     o, d, tmin, tmax = rays["origins"], rays["directions"], rays["tmin"], rays["tmax"]
+    m, rest = len(o), None
     t0 = time.perf_counter()
+    if plan is not None:
+        rest, (o, d, tmin, tmax) = plan.split(o, d, tmin, tmax)
     if any_hit:
         parts = _chunked(job, acc.occluded, o, d, tmin, tmax, 0.5, 0.5)
         out = np.concatenate(parts) if parts else np.zeros(0, bool)
@@ -52,7 +57,10 @@ def _trace_all(job, acc, rays, any_hit):
         parts = _chunked(job, acc.trace, o, d, tmin, tmax, 0.5, 0.5)
         out = core.Hits(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "triangle", "u", "v"))) \
             if parts else core.Hits.empty(0)
-    return out, time.perf_counter() - t0
+    traced = m if rest is None else len(rest)
+    if plan is not None:
+        out = plan.merge(m, rest, out)
+    return out, time.perf_counter() - t0, traced
 
 
 def prepared_scene(scene, props, depsgraph):
@@ -110,10 +118,10 @@ def trace_job(scene, job: Job, *, workload="CAMERA", view_layer=None, target=Non
         build_time = acc.build_time
         structures[kind] = acc
     job.fraction = 0.5
-    out, trace_time = yield from job.call(_trace_all, job, acc, rays, workload == "AO")
+    out, trace_time, traced = yield from job.call(_trace_all, job, acc, rays, workload == "AO", plan)
     job.check()
     return {"workload": workload, "rays": rays, "result": out, "plan": plan, "mesh": mesh, "summary": summary,
-            "structure": kind, "build_time": build_time, "trace_time": trace_time, "key": key,
+            "structure": kind, "build_time": build_time, "trace_time": trace_time, "traced": traced, "key": key,
             "generation": gen_at, "grid": plan.grid, "structures": structures, "object": ob,
             "notes": notes, "calibration_measured": cal.source == "measured", "calibration_message": cal_message}
 
@@ -150,8 +158,10 @@ def apply_trace(scene, result) -> list[tuple[str, str]]:
     if not result["calibration_measured"]:
         msgs.append(("WARNING", result["calibration_message"]))
     built = f", built in {result['build_time'] * 1e3:.0f} ms" if result["build_time"] else ""
-    msgs.append(("INFO", f"traced {m:,} {what} with {plan.decision}{built}, in {result['trace_time']:.2f} s "
-                         f"({m / max(result['trace_time'], 1e-9):,.0f} rays/s){tail}"))
+    traced = result["traced"]
+    early = f" ({m - traced:,} of them answered while planning)" if traced < m else ""
+    msgs.append(("INFO", f"traced {m:,} {what}{early} with {plan.decision}{built}, in {result['trace_time']:.2f} s "
+                         f"({traced / max(result['trace_time'], 1e-9):,.0f} rays/s){tail}"))
     return msgs
 
 

@@ -45,7 +45,7 @@ def test_fit_is_the_mean_of_per_scene_ratios_with_an_interval_around_it():
         SceneRecord("s2", 4096, 2000, {"bvh": Measurement(4096 * 12 * 3e-7, 2000 * 12 * 4e-7, 2000)}),
         SceneRecord("s3", 256, 500, {"bvh": Measurement(256 * 8 * 5e-7, 500 * 8 * 9e-7, 500)}),
     ]
-    f = fit(recs, ["bvh"])["bvh"]
+    f = fit(recs, ["bvh"], model="paper")["bvh"]
     assert f.c_B == pytest.approx(3e-7, rel=1e-12), f"c_B should be the mean of 1e-7, 3e-7, 5e-7, got {f.c_B}"
     assert f.c_R == pytest.approx(5e-7, rel=1e-12), f"c_R should be the mean of 2e-7, 4e-7, 9e-7, got {f.c_R}"
     assert f.c_B_low == pytest.approx(np.percentile([1e-7, 3e-7, 5e-7], 10))
@@ -57,7 +57,7 @@ def test_fit_is_the_mean_of_per_scene_ratios_with_an_interval_around_it():
 def test_interval_always_contains_the_mean_even_with_an_outlier():
     recs = [SceneRecord(f"s{i}", 1024, 100, {"bvh": Measurement(1024 * 10 * v, 100 * 10 * v, 100)})
             for i, v in enumerate([1e-7] * 19 + [1e-4])]
-    f = fit(recs, ["bvh"])["bvh"]
+    f = fit(recs, ["bvh"], model="paper")["bvh"]
     assert f.c_B_low <= f.c_B <= f.c_B_high, f"mean {f.c_B} outside [{f.c_B_low}, {f.c_B_high}]"
 
 
@@ -224,7 +224,8 @@ def test_calibrate_measures_fits_and_reports_progress_to_one():
     # brute force needs no other module: this checks the mechanics, not the constants
     seen = []
     scenes = [("sphere", S.sphere(80)), ("soup", lambda: S.soup(60, seed=1))]
-    cal = calibrate(scenes, kinds=("brute",), rays_per_scene=40, grid=False, progress=lambda f, m: seen.append((f, m)))
+    cal = calibrate(scenes, kinds=("brute",), rays_per_scene=40, grid=False, model="paper",
+                    progress=lambda f, m: seen.append((f, m)))
     fr = [f for f, _ in seen]
     assert fr == sorted(fr) and fr[0] == 0.0 and fr[-1] == 1.0, f"progress fractions should rise to 1: {fr}"
     assert all(isinstance(m, str) and m for _, m in seen)
@@ -301,3 +302,62 @@ def test_calibration_sets_span_the_sizes_and_have_unique_names():
         S.calibration_set("huge")
     with pytest.raises(ValueError, match="unknown procedural scene 'cube'"):
         S.make_scene("cube", 10)
+
+
+# -- the grid's sample ratio ------------------------------------------------------------------------
+
+def _sampled(ratios_by_scene, ladder=(1024, 4096, 16384)) -> Calibration:
+    """Scenes whose grid runs 1 us per ray on a large batch and 1/ratio us on a K-ray sample."""
+    recs = []
+    for i, ratios in enumerate(ratios_by_scene):
+        rec = SceneRecord(f"s{i}", 1000, 1000, {"grid": Measurement(0.001, 1000 * 1e-6, 1000)})
+        rec.grid_samples = {k: 1e-6 / q for k, q in zip(ladder, ratios)}
+        recs.append(rec)
+    return Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, scenes=recs, source="hand")
+
+
+def test_grid_sample_ratio_is_the_median_over_scenes_interpolated_in_log_k():
+    cal = _sampled([(0.2, 0.5, 0.8), (0.3, 0.6, 0.9), (0.1, 0.4, 0.7)])
+    med, lo, hi = cal.grid_sample_ratio(4096)
+    assert med == pytest.approx(0.5) and lo == pytest.approx(np.percentile([0.5, 0.6, 0.4], 10))
+    assert hi == pytest.approx(np.percentile([0.5, 0.6, 0.4], 90))
+    # halfway between 4096 and 16384 in log2 K (8192) is halfway between 0.5 and 0.8
+    assert cal.grid_sample_ratio(8192)[0] == pytest.approx(0.65)
+    # clamped at both ends of the ladder
+    assert cal.grid_sample_ratio(16)[0] == pytest.approx(0.2) and cal.grid_sample_ratio(1 << 20)[0] == pytest.approx(0.8)
+
+
+def test_grid_sample_ratio_without_samples_is_one():
+    assert hand_calibration().grid_sample_ratio(16384) == (1.0, 1.0, 1.0)
+
+
+def test_grid_samples_round_trip_with_integer_sample_sizes(tmp_path):
+    cal = _sampled([(0.2, 0.5, 0.8)])
+    back = load(cal.save(tmp_path / "cal.json"), check_version=False)
+    assert back.scenes[0].grid_samples == cal.scenes[0].grid_samples
+    assert back.grid_sample_ratio(4096) == cal.grid_sample_ratio(4096)
+
+
+def test_a_format_1_file_falls_back_to_the_defaults_naming_the_format(tmp_path):
+    p = _edit(tmp_path, lambda d: d["version"].__setitem__("format", 1))
+    cal, msg = load_or_default(p)
+    assert cal.source == "shipped defaults" and "calibration format 1" in msg, msg
+
+
+def test_calibrate_times_the_grid_on_each_sample_size():
+    cal = calibrate(S.calibration_set("tiny")[:2], kinds=("bvh",), rays_per_scene=300, sample_ladder=(64, 256))
+    for r in cal.scenes:
+        assert sorted(r.grid_samples) == [64, 256] and all(v > 0 for v in r.grid_samples.values()), r.grid_samples
+    med, lo, hi = cal.grid_sample_ratio(128)
+    assert 0 < lo <= med <= hi
+
+
+def test_time_trace_runs_the_batch_as_trace_does_and_leaves_the_chunk_size_alone():
+    mesh = S.sphere(200)
+    from hybrid_raycast.core.rays import uniform_rays
+
+    o, d = uniform_rays(mesh, 500, seed=3)
+    g = C.build(mesh, "grid", threads=2)
+    hits, dt = C.time_trace(g, o, d)
+    assert dt > 0 and np.array_equal(hits.triangle, g.trace(o, d).triangle)
+    assert "chunk_size" not in g.__dict__, "time_trace must not change the structure's chunks"

@@ -286,3 +286,91 @@ def test_online_without_constants_for_the_kind_keeps_the_grid_and_says_so():
     d = rec.to_dict()
     json.dumps(d, allow_nan=False)
     assert d["estimated_build_time"] is None
+
+
+# -- the grid sample's correction and the reuse of workload samples ------------------------------------
+
+def _with_ratio(cal: Calibration, ratio: float, spread=(0.5, 2.0)) -> Calibration:
+    """Give a hand-made calibration three scenes whose grid ratio at every K is ratio*spread."""
+    from hybrid_raycast.core.calibration import Measurement, SceneRecord
+
+    for i, q in enumerate((ratio * spread[0], ratio, ratio * spread[1])):
+        rec = SceneRecord(f"r{i}", 100, 100, {"grid": Measurement(0.0, 1e-4, 100)})
+        rec.grid_samples = {k: 1e-6 / q for k in (16, 1 << 20)}
+        cal.scenes.append(rec)
+    cal.spread = (0.0, 100.0)
+    return cal
+
+
+def test_plan_scales_the_sample_time_by_the_calibrated_ratio():
+    cal = _with_ratio(cal_of(bvh=(1e-9, 1e-9)), 0.5)
+    p = plan(scenes.torus(1500), 1e6, cal, samples=256, kinds=("grid", "bvh"))
+    assert p.grid_sample_ratio == pytest.approx(0.5)
+    assert p.grid_per_ray == pytest.approx(0.5 * p.grid_sample_per_ray, rel=1e-12)
+    g = p.candidates["grid"]
+    assert (g.per_ray_low, g.per_ray_high) == pytest.approx((0.25 * p.grid_sample_per_ray, 1.0 * p.grid_sample_per_ray))
+    assert json.loads(json.dumps(p.to_dict()))["grid_sample_ratio"] == pytest.approx(0.5)
+
+
+def test_grid_interval_widens_the_break_even_interval_exactly():
+    # t_G in [2e-6, 8e-6] around 4e-6; BVH build 0.01 s, 1e-6 s per ray (no spread of its own)
+    cal = cal_of(bvh=(0.01 / 10240, 1e-7))
+    p = plan_from_timings(N, 1e3, cal, 0.0, 4e-6, grid_per_ray_low=2e-6, grid_per_ray_high=8e-6, kinds=("grid", "bvh"))
+    c = p.candidates["bvh"]
+    assert c.break_even == pytest.approx(0.01 / 3e-6) and c.break_even_low == pytest.approx(0.01 / 7e-6)
+    assert c.break_even_high == pytest.approx(0.01 / 1e-6)
+
+
+def test_break_even_kind_is_none_when_no_candidate_ever_pays():
+    p = plan_from_timings(N, 1e9, cal_of(bvh=(1e-7, 1e-6)), 0.0, 1e-6, kinds=("grid", "bvh"))
+    assert math.isinf(p.break_even) and p.break_even_kind is None and p.decision == "GRID"
+
+
+def test_trace_reuses_the_samples_drawn_from_the_workload():
+    mesh = scenes.torus(1500)
+    o, d = uniform_rays(mesh, 900, seed=9)
+    ref = _reference(mesh, o, d)
+    p = plan(mesh, 10, cal_of(bvh=(1e-7, 1e-7)), rays=(o, d), samples=300, kinds=("grid", "bvh"))
+    assert p.decision == "GRID" and p.workload_samples == 300
+    _assert_same(p.trace(o, d), ref, "grid with reused samples")
+    assert p.executed[-1]["rays"] == 600 and p.executed[-1]["reused"] == 300, p.executed
+    # copies are other arrays: everything is traced again
+    _assert_same(p.trace(o.copy(), d.copy()), ref, "grid on copies")
+    assert p.executed[-1]["rays"] == 900 and p.executed[-1]["reused"] == 0, p.executed
+
+
+def test_a_workload_of_at_most_k_rays_is_answered_while_planning():
+    mesh = scenes.sphere(2000)
+    o, d = uniform_rays(mesh, 250, seed=10)
+    tmax = np.full(250, 0.5, np.float32)
+    ref = build(mesh, "brute").trace(o, d, 0.0, tmax)
+    p = plan(mesh, 1e15, cal_of(bvh=(1e-12, 1e-12)), rays=(o, d, 0.0, tmax), samples=1000, kinds=("grid", "bvh"))
+    assert p.decision == "BVH" and p.samples == 250 and p.workload_samples == 250
+    _assert_same(p.trace(o, d, 0.0, tmax), ref, "whole workload from the plan's samples")
+    assert p.executed[-1]["rays"] == 0 and p.executed[-1]["reused"] == 250, p.executed
+    # occlusion answers merge from the same samples
+    rest, rays = p.split(o, d, 0.0, tmax)
+    assert len(rest) == 0
+    occ = p.merge(250, rest, np.zeros(0, bool))
+    assert np.array_equal(occ, ref.hit)
+
+
+def test_partial_occlusion_merge_matches_a_full_occlusion_query():
+    mesh = scenes.city(800)
+    o, d = uniform_rays(mesh, 700, seed=11)
+    p = plan(mesh, 10, cal_of(bvh=(1e-7, 1e-7)), rays=(o, d), samples=200, kinds=("grid", "bvh"))
+    rest, (ro, rd, rt0, rt1) = p.split(o, d)
+    assert len(rest) == 500 and np.array_equal(ro, o[rest])
+    occ = p.merge(700, rest, p.grid.occluded(ro, rd, rt0, rt1))
+    assert np.array_equal(occ, build(mesh, "brute").occluded(o, d))
+
+
+def test_embree_decisions_do_not_mix_in_the_grids_answers():
+    pytest.importorskip("embreex")
+    mesh = scenes.sphere(2000)
+    o, d = uniform_rays(mesh, 600, seed=12)
+    p = plan(mesh, 1e15, cal_of(bvh=(1e-6, 1e-6), embree=(1e-12, 1e-12)), rays=(o, d), samples=200)
+    assert p.decision == "EMBREE"
+    assert p.reusable_samples(o, d) is None
+    p.trace(o, d)
+    assert p.executed[-1]["rays"] == 600 and p.executed[-1]["reused"] == 0
