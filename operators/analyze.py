@@ -146,6 +146,7 @@ def store_results(props, record):
     props.grid_build_time = st["grid"]["build_time"]
     props.grid_per_ray = st["grid"]["per_ray"]
     props.samples_traced = record["plan"]["samples"]
+    props.grid_sample_ratio = record["plan"].get("grid_sample_ratio", 1.0)
     for kind in ("bvh", "embree"):
         c = st.get(kind)
         setattr(props, f"{kind}_considered", c is not None)

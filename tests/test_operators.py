@@ -43,6 +43,9 @@ def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     else:
         assert p.analyzed_rays > p.break_even_rays * (1 - 1e-6), (p.analyzed_rays, p.break_even_rays)
     assert rec["structures"]["grid"]["per_ray"] == pytest.approx(p.grid_per_ray, rel=1e-6)
+    # the large-workload estimate is the sample's time times the calibrated batch ratio
+    assert 0 < p.grid_sample_ratio == pytest.approx(rec["plan"]["grid_sample_ratio"], rel=1e-6)
+    assert p.grid_per_ray == pytest.approx(rec["plan"]["grid_sample_per_ray"] * rec["plan"]["grid_sample_ratio"], rel=1e-5)
     assert rec["summary"]["triangles"] == p.triangle_count
 
 

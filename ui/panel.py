@@ -142,7 +142,7 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
             return
         col = layout.column(align=True)
         col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
-        col.label(text=f"  (from {props.samples_traced:,} sample rays)")
+        col.label(text=f"  (from {props.samples_traced:,} sample rays x {props.grid_sample_ratio:.2f} batch ratio)")
         if props.bvh_considered:
             col.label(text=f"BVH (est.): build {_secs(props.bvh_build_time)}, {_secs(props.bvh_per_ray)}/ray")
         if props.embree_considered:

@@ -223,15 +223,20 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         items=(("NONE", "None", "No candidate beats the grid"), ("BVH", "BVH", ""), ("EMBREE", "Embree", "")),
         default="NONE")
     grid_build_time: _time("Grid Build", "Measured build time of the uniform grid")
-    grid_per_ray: _time("Grid per Ray", "Measured grid time per ray, from the sample rays")
+    grid_per_ray: _time("Grid per Ray", "Grid time per ray on a large workload: the sample rays' measured time "
+                        "times the calibrated batch ratio")
     samples_traced: IntProperty(name="Samples Traced", description="Sample rays the grid's time per ray comes from", min=0)
+    grid_sample_ratio: FloatProperty(
+        name="Batch Ratio", description="Calibrated ratio of the grid's time per ray on a large workload to its time "
+        "per ray on this many sample rays (a small batch pays the traversal's fixed costs over few rays)",
+        min=0.0, soft_max=2.0, precision=3, default=1.0)
     bvh_considered: BoolProperty(name="BVH Considered", description="The BVH was a candidate with calibration constants")
-    bvh_build_time: _time("BVH Build (est.)", "Estimated BVH build time, c_B N log2 N")
-    bvh_per_ray: _time("BVH per Ray (est.)", "Estimated BVH time per ray, c_R log2 N")
+    bvh_build_time: _time("BVH Build (est.)", "Estimated BVH build time, a_B + c_B N log2 N (affine model)")
+    bvh_per_ray: _time("BVH per Ray (est.)", "Estimated BVH time per ray, a_R + c_R log2 N (affine model)")
     embree_considered: BoolProperty(name="Embree Considered", description="Embree was a candidate, importable, with calibration constants")
     embree_available: BoolProperty(name="Embree Available", description="embreex could be imported at the analysis")
-    embree_build_time: _time("Embree Build (est.)", "Estimated Embree build time, c_B N log2 N")
-    embree_per_ray: _time("Embree per Ray (est.)", "Estimated Embree time per ray, c_R log2 N")
+    embree_build_time: _time("Embree Build (est.)", "Estimated Embree build time, a_B + c_B N log2 N (affine model)")
+    embree_per_ray: _time("Embree per Ray (est.)", "Estimated Embree time per ray, a_R + c_R log2 N (affine model)")
     analyzed_at: StringProperty(name="Analyzed At", description="When the analysis ran (local time, ISO 8601)")
     analysis_duration: _time("Analysis Time", "Wall time of the whole analysis (extraction, grid, samples, plan)")
     calibration_source: StringProperty(name="Calibration", description="Where the calibration constants came from")
