@@ -18,8 +18,9 @@ R*_low <= R* <= R*_high.
 
 When the workload's own rays are given, the K sample rays are drawn from them and their
 answers kept: ``Plan.trace`` on those same arrays traces only the other rays (with the
-grid or the numpy BVH, which agree bit for bit; Embree retraces everything).  A workload
-of at most K rays is therefore traced whole while planning, and costs nothing more.
+grid or the numpy BVH, which agree bit for bit; Embree retraces everything), and the
+decision weighs only the rays left.  A workload of at most K rays is therefore answered
+whole while planning, and the plan keeps the grid: nothing is left to build for.
 
 Online mode (``trace_online``), which needs no ray count: trace with the grid in batches
 and switch to H once the grid's accumulated trace time reaches H's estimated build
@@ -45,6 +46,9 @@ DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
 DECISIONS = ("GRID", "BVH", "EMBREE")
+#: structures that answer every ray bit for bit like the grid: a plan that drew its samples
+#: from the workload keeps their answers when it chooses one of these
+REUSES_SAMPLES = ("grid", "bvh")
 
 
 def _check_expected(expected_rays) -> float:
@@ -203,7 +207,7 @@ class Plan:
         """(indices, Hits) of the sample rays already answered, when ``origins`` and
         ``directions`` are the very arrays the plan sampled and the chosen structure
         answers bit for bit like the grid (grid, numpy BVH); else None."""
-        if self.sample is None or self.chosen not in ("grid", "bvh"):
+        if self.sample is None or self.chosen not in REUSES_SAMPLES:
             return None
         so, sd, idx, hits = self.sample
         if origins is not so or directions is not sd:
@@ -281,6 +285,7 @@ def plan_from_timings(
     grid_per_ray_high: float | None = None,
     kinds=("grid", "bvh", "embree"),
     samples: int = 0,
+    answered: int = 0,
     notes=(),
 ) -> Plan:
     """The plan's arithmetic alone, from a measured grid and the calibration.
@@ -288,7 +293,10 @@ def plan_from_timings(
     Pure: no structure is built or traced, so tests can check the break-even on known
     numbers.  ``kinds`` other than 'grid' are candidates; those the calibration has no
     constants for are skipped with a note.  grid_per_ray_low/high: the interval of the
-    grid's time per ray (default: the point value).
+    grid's time per ray (default: the point value).  answered: rays of the workload the
+    grid's samples have answered already; the decision then weighs what is left to trace,
+    R - answered rays for the grid and the structures in REUSES_SAMPLES, R for the others
+    (the break-even figures still count a workload's rays from zero).
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
@@ -322,10 +330,19 @@ def plan_from_timings(
         be_high = min(c.break_even_high for c in hds)
     else:
         be, be_low, be_high, be_kind = math.inf, math.inf, math.inf, None
-    if r <= be:
-        decision = "grid"  # ties go to the grid: nothing more to build
+    answered = max(0, int(answered))
+    if not answered:
+        if r <= be:
+            decision = "grid"  # ties go to the grid: nothing more to build
+        else:
+            decision = min(hds, key=lambda c: (float(c.total_time(r)), c.kind)).kind
     else:
-        decision = min(hds, key=lambda c: (float(c.total_time(r)), c.kind)).kind
+        left = max(r - answered, 0.0)
+        if left == 0:
+            notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
+        costs = [(left * cands["grid"].per_ray, 0, "grid")] + [
+            (float(c.total_time(left if c.kind in REUSES_SAMPLES else r)), 1, c.kind) for c in hds]
+        decision = min(costs)[2]  # ties go to the grid, then to the first name
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
@@ -413,7 +430,7 @@ def plan(
     ratio, ratio_lo, ratio_hi = calibration.grid_sample_ratio(k) if k else (1.0, 1.0, 1.0)
     p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), t_sample * ratio,
                           grid_per_ray_low=t_sample * ratio_lo, grid_per_ray_high=t_sample * ratio_hi,
-                          kinds=kinds, samples=k, notes=notes)
+                          kinds=kinds, samples=k, answered=k if idx is not None else 0, notes=notes)
     p.grid_sample_per_ray, p.grid_sample_ratio = t_sample, ratio
     if rays is not None or k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "

@@ -16,13 +16,17 @@ Strategies compared per (scene, R), all in seconds:
 
 - always-grid  ``T_B^G + R t_G``;
 - always-H     ``T_B^H + R t_H`` for each hierarchical structure H (no grid built);
-- hybrid       ``T_B^G + overhead + (R t_G  if R <= R_est  else  T_B^H + R t_H)``: it
-  builds the grid, pays the estimate (the K sample rays), then follows its estimated
-  decision at the *true* cost of the structure it chose.  The sample rays are counted as
-  overhead and not subtracted from R (conservative);
-- hybrid_reuse the same with the K sample rays taken from the workload itself (a plan
-  given the workload's rays): when R <= K the grid traces everything without an estimate,
-  else the samples are K of the R rays and only R - K remain;
+- hybrid       ``T_B^G + e + (R t_G  if R <= R_est  else  T_B^H + R t_H)``: the sidebar's
+  Analyze, K uniform sample rays apart from the workload.  It builds the grid, pays the
+  estimate e (tracing the K samples, plus arithmetic), then follows its estimated decision
+  at the *true* cost of the structure it chose;
+- hybrid_reuse the same plan given the workload's own rays (``api.cast``, the Trace
+  operator): the K samples are K of the R rays and their answers are kept, so the chosen
+  structure traces only the R - K others (Embree, which does not answer bit for bit like
+  the grid, retraces all R).  The estimate then costs its arithmetic plus the difference
+  between the grid's sample time and what those K rays cost with the chosen structure.
+  When R <= K the grid answers the whole workload while planning; a structure the plan
+  still chooses (R > R_est) is built for nothing, as the add-on does today;
 - online       the ski-rental rule of ``plan.trace_online``: the grid traces in batches
   until its accumulated trace time reaches H's *estimated* build time, then H is built
   and traces the rest, at true costs; switching happens on batch boundaries and only
@@ -33,10 +37,11 @@ Strategies compared per (scene, R), all in seconds:
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from .plan import REUSES_SAMPLES as _REUSES
 from .calibration import DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, log2n, nlog2n
 
 #: the ray counts of the speedup tables: 1e3 to 1e8, four points a decade
@@ -45,6 +50,9 @@ RAY_COUNTS = np.logspace(3, 8, 21)
 DIFFER = 0.10
 #: ray count at which the estimate's own cost is quoted
 COST_AT = 1e6
+#: structures that answer a ray bit for bit like the grid, so a plan given the workload
+#: keeps its sample's answers when it chooses them (``Plan.reusable_samples``)
+REUSES_SAMPLES = _REUSES
 
 
 @dataclass
@@ -64,8 +72,12 @@ class SceneResult:
 
     grid / measured: true costs (the grid and each hierarchical structure, built and run
     on ``rays`` rays); estimated: the plan's estimates for the hierarchical structures;
-    grid_sample_per_ray: the grid's time per ray on the plan's K sample rays (the t_G the
-    estimate used); estimate_time: the estimate's own cost beyond the grid build.
+    grid_estimate_per_ray: the grid's time per ray the estimate used, i.e. ``Plan.grid_per_ray``
+    (the K-sample time times the calibration's small-batch ratio); grid_sample_per_ray:
+    the raw K-sample time per ray (``Plan.grid_sample_per_ray``; None when unknown);
+    estimate_time: the estimate's own cost beyond the grid build with K uniform samples;
+    reuse_estimate_time: the same when the samples are drawn from the workload (None: as
+    estimate_time).
     """
 
     name: str
@@ -74,11 +86,20 @@ class SceneResult:
     grid: Cost
     measured: dict[str, Cost]
     estimated: dict[str, Cost]
-    grid_sample_per_ray: float
+    grid_estimate_per_ray: float
     estimate_time: float
     samples: int = 0
     group: str = ""
+    grid_sample_per_ray: float | None = None
+    reuse_estimate_time: float | None = None
     extra: dict = field(default_factory=dict)
+
+    @property
+    def grid_sample_ratio(self) -> float | None:
+        """The correction the estimate applied to the raw sample (None when unknown)."""
+        if not self.grid_sample_per_ray:
+            return None
+        return self.grid_estimate_per_ray / self.grid_sample_per_ray
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -105,8 +126,9 @@ def true_break_even(s: SceneResult, kind: str = "bvh") -> float:
 
 
 def estimated_break_even(s: SceneResult, kind: str = "bvh") -> float:
-    """R_est: the grid's sample time per ray against the calibration's estimate of H."""
-    return break_even(s.estimated[kind].build, s.grid_sample_per_ray, s.estimated[kind].per_ray)
+    """R_est: the grid's estimated time per ray (as the plan corrected it) against the
+    calibration's estimate of H."""
+    return break_even(s.estimated[kind].build, s.grid_estimate_per_ray, s.estimated[kind].per_ray)
 
 
 def relative_error(r_est: float, r_c: float) -> float:
@@ -184,6 +206,54 @@ def online_switch(s: SceneResult, kind: str = "bvh", batch: int = 1 << 15) -> fl
     return float(batches * batch)
 
 
+def chosen_cost(s: SceneResult, choice, rays) -> np.ndarray:
+    """True time of the chosen structures on ``rays`` rays, the grid's build excluded (it
+    is sunk): ``R t_G`` where the choice is the grid, ``T_B^H + R t_H`` where it is H."""
+    r = np.asarray(rays, np.float64)
+    out = r * s.grid.per_ray
+    for k, c in s.measured.items():
+        out = np.where(choice == k, c.total(r), out)
+    return out
+
+
+def hybrid_reuse_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
+    """The plan's decision when its K samples are K of the workload's R rays (plan.py with
+    ``answered=K``): the least estimated cost of what is left, ``(R - K) t_G`` for the
+    grid, ``T_B^H + (R - K) t_H`` for H in REUSES_SAMPLES, ``T_B^H + R t_H`` for the
+    others; ties go to the grid, then to the first name."""
+    r = np.atleast_1d(np.asarray(rays, np.float64))
+    kinds = sorted(k for k in kinds if k in s.estimated)
+    left = np.maximum(r - float(s.samples), 0.0)
+    costs = [left * s.grid_estimate_per_ray] + [
+        s.estimated[k].total(left if k in REUSES_SAMPLES else r) for k in kinds]
+    return np.array(["grid"] + kinds, dtype=object)[np.argmin(np.stack(costs), axis=0)]
+
+
+def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]:
+    """The two hybrids' totals (see the module docstring) and the plan's choices.
+
+    hybrid: K uniform samples apart from the workload, ``T_B^G + e + C(R)``;
+    hybrid_reuse: the samples are K of the R rays and the decision weighs the rays left
+    (``hybrid_reuse_choice``): ``T_B^G + e' + C(R - K)`` where the choice keeps the
+    sample's answers (grid, numpy BVH), ``T_B^G + e' + C(R)`` otherwise; when R <= K the
+    grid answers all while planning, ``T_B^G + R t_G``.  C is the true cost of the choice
+    (its build included, the grid's sunk) and e' the estimate's cost with workload samples.
+    """
+    r = np.atleast_1d(np.asarray(rays, np.float64))
+    kinds = [k for k in kinds if k in s.measured]
+    choice = hybrid_choice(s, r, kinds)
+    reuse = hybrid_reuse_choice(s, r, kinds)
+    k = float(s.samples)
+    e_reuse = s.estimate_time if s.reuse_estimate_time is None else s.reuse_estimate_time
+    rest = np.where(np.isin(reuse, REUSES_SAMPLES), np.maximum(r - k, 0.0), r)
+    return {
+        "hybrid": s.grid.build + s.estimate_time + chosen_cost(s, choice, r),
+        "hybrid_reuse": np.where(r <= k, s.grid.total(r), s.grid.build + e_reuse + chosen_cost(s, reuse, rest)),
+        "choice": choice,
+        "choice_reuse": reuse,
+    }
+
+
 def strategy_totals(s: SceneResult, rays=RAY_COUNTS, kinds=("bvh",), online_kind: str = "bvh",
                     batch: int = 1 << 15) -> dict[str, np.ndarray]:
     """Total time of each strategy for each ray count (see the module docstring)."""
@@ -192,25 +262,12 @@ def strategy_totals(s: SceneResult, rays=RAY_COUNTS, kinds=("bvh",), online_kind
     out = {"grid": s.grid.total(r)}
     for k in kinds:
         out[k] = s.measured[k].total(r)
-    choice = hybrid_choice(s, r, kinds)
-    after = r * s.grid.per_ray
-    for k in kinds:
-        after = np.where(choice == k, s.measured[k].total(r), after)
-    out["hybrid"] = s.grid.build + s.estimate_time + after
-    # the same plan with its K sample rays taken from the workload: no estimate at all when
-    # R <= K (the grid traces everything), else the samples count among the R rays
-    k = float(s.samples)
-    rest = np.maximum(r - k, 0.0)
-    after_rest = rest * s.grid.per_ray
-    for kk in kinds:
-        after_rest = np.where(choice == kk, s.measured[kk].total(rest), after_rest)
-    out["hybrid_reuse"] = np.where(r <= k, s.grid.total(r), s.grid.build + s.estimate_time + after_rest)
+    out.update(hybrid_totals(s, r, kinds))
     if online_kind in s.measured:
         sw = online_switch(s, online_kind, batch)
         h = s.measured[online_kind]
         out["online"] = np.where(r <= sw, s.grid.total(r), s.grid.build + sw * s.grid.per_ray + h.build + (r - np.minimum(r, sw)) * h.per_ray)
     out["oracle"] = np.min(np.stack([out["grid"]] + [out[k] for k in kinds]), axis=0)
-    out["choice"] = choice
     return out
 
 
@@ -246,7 +303,8 @@ def speedup_summary(scenes, rays=RAY_COUNTS, kinds=("bvh",), online_kind: str = 
     """Medians over every (scene, R) case of the time ratios between strategies.
 
     speedup_vs_X = T_X / T_hybrid (above 1: the hybrid is faster); hybrid_over_oracle =
-    T_hybrid / T_oracle (1 is perfect); online_over_oracle likewise.
+    T_hybrid / T_oracle (1 is perfect); the reuse_* and hybrid_reuse_* figures likewise for
+    the hybrid with samples from the workload; online_over_oracle likewise.
     """
     ratios: dict[str, list] = {}
 
@@ -259,6 +317,9 @@ def speedup_summary(scenes, rays=RAY_COUNTS, kinds=("bvh",), online_kind: str = 
         for k in kinds:
             if k in t:
                 add(f"speedup_vs_{k}", t[k] / t["hybrid"])
+        for k in ["grid"] + list(kinds):
+            if k in t:
+                add(f"reuse_speedup_vs_{k}", t[k] / t["hybrid_reuse"])
         add("hybrid_over_oracle", t["hybrid"] / t["oracle"])
         add("hybrid_reuse_over_oracle", t["hybrid_reuse"] / t["oracle"])
         if "online" in t:
@@ -272,9 +333,17 @@ def speedup_summary(scenes, rays=RAY_COUNTS, kinds=("bvh",), online_kind: str = 
     return out
 
 
-def estimate_cost_percent(s: SceneResult, rays: float = COST_AT) -> float:
-    """The estimate's own cost as a percentage of the grid-only total for ``rays`` rays."""
-    return 100.0 * s.estimate_time / float(s.grid.total(rays))
+def estimate_cost_percent(s: SceneResult, rays: float = COST_AT, reuse: bool = False, kinds=("bvh",)) -> float:
+    """The estimate's own cost as a percentage of the grid-only total for ``rays`` rays.
+
+    reuse=False: the K uniform samples apart from the workload (``estimate_time``).
+    reuse=True: the net cost when the samples come from the workload, the hybrid's total
+    less the grid's build and what the chosen structure costs on all ``rays`` rays."""
+    if not reuse:
+        return 100.0 * s.estimate_time / float(s.grid.total(rays))
+    t = hybrid_totals(s, [rays], kinds)
+    net = t["hybrid_reuse"][0] - s.grid.build - chosen_cost(s, t["choice"], [rays])[0]
+    return 100.0 * float(net) / float(s.grid.total(rays))
 
 
 def median_per_ray(scenes, kinds=("grid", "bvh")) -> dict:
@@ -288,48 +357,37 @@ def median_per_ray(scenes, kinds=("grid", "bvh")) -> dict:
 
 def error_components(s: SceneResult, kind: str = "bvh") -> dict:
     """Where an estimate's error comes from, each as ``100 (estimate - truth) / truth``:
-    H's build, H's time per ray, and the grid's time per ray from the K samples."""
+    H's build, H's time per ray, and the grid's estimated time per ray (the plan's
+    corrected figure); grid_sample: the raw K-sample time's (NaN when unknown)."""
     m, e = s.measured[kind], s.estimated[kind]
 
     def rel(a, b):
         return 100.0 * (a - b) / b if b > 0 else math.nan
 
     return {"build": rel(e.build, m.build), "per_ray": rel(e.per_ray, m.per_ray),
-            "grid_per_ray": rel(s.grid_sample_per_ray, s.grid.per_ray)}
+            "grid_per_ray": rel(s.grid_estimate_per_ray, s.grid.per_ray),
+            "grid_sample": rel(s.grid_sample_per_ray, s.grid.per_ray) if s.grid_sample_per_ray else math.nan}
 
 
-# -- the grid's time per ray from two sample batches ---------------------------------------------
-
-def extrapolated_per_ray(b1: int, t1: float, b2: int, t2: float, chunk: int, threads: int) -> float:
-    """The grid's time per ray for a large workload, from two sample batches.
-
-    A batch of b rays split over ``threads`` threads costs about ``T(b) = b s + F``: a
-    per-ray part and a per-batch part F (a lockstep traversal steps until its longest ray
-    is done, whatever the batch size).  Two batches give s and F; a large workload runs in
-    rounds of ``chunk * threads`` rays, each paying F, so it costs ``s + F / (chunk threads)``
-    per ray.  Falls back on the plain mean ``(t1 + t2) / (b1 + b2)`` when the two batches
-    do not give a positive s and a non-negative F (noise).
-    """
-    if b1 == b2:
-        return (t1 + t2) / (b1 + b2)
-    s = (t2 - t1) / (b2 - b1)
-    f = t1 - b1 * s
-    if not (s > 0 and f >= 0):
-        return (t1 + t2) / (b1 + b2)
-    return s + f / (max(1, chunk) * max(1, threads))
-
+# -- the grid's estimate ---------------------------------------------------------------------------
 
 def with_grid_estimate(s: SceneResult, per_ray: float, estimate_time: float | None = None) -> SceneResult:
-    """``s`` with another estimate of the grid's time per ray (and of the estimate's cost)."""
-    return SceneResult(s.name, s.triangles, s.rays, s.grid, s.measured, dict(s.estimated), float(per_ray),
-                       s.estimate_time if estimate_time is None else float(estimate_time), s.samples, s.group, dict(s.extra))
+    """``s`` with another estimate of the grid's time per ray (and of the estimate's cost),
+    used as it is: e.g. ``with_grid_estimate(s, s.grid_sample_per_ray)`` is the paper's
+    uncorrected time / K."""
+    return replace(s, estimated=dict(s.estimated), grid_estimate_per_ray=float(per_ray), extra=dict(s.extra),
+                   estimate_time=s.estimate_time if estimate_time is None else float(estimate_time))
 
 
 def sample_ratio(true_per_ray, sample_per_ray) -> dict:
     """How the grid's time per ray on K sample rays relates to a large workload's, over
-    calibration scenes: the median of ``true / sample`` and its spread.  Multiplying a
-    plan's sample time by the median corrects the small batch's overhead on average."""
-    r = np.asarray(true_per_ray, np.float64) / np.asarray(sample_per_ray, np.float64)
+    scenes: the median of ``true / sample`` and its spread (10th / 90th percentiles).  The
+    calibration's ``grid_sample_ratio`` is this on its own scenes; on the evaluated
+    scenes it tells whether that correction carries over."""
+    ok = [(t, x) for t, x in zip(true_per_ray, sample_per_ray) if t and x and math.isfinite(t) and math.isfinite(x)]
+    if not ok:
+        return {"median": math.nan, "p10": math.nan, "p90": math.nan, "scenes": 0}
+    r = np.asarray([t / x for t, x in ok], np.float64)
     return {"median": float(np.median(r)), "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)),
             "scenes": int(r.size)}
 
@@ -402,19 +460,19 @@ def loo_break_even_errors(records: list[SceneRecord], kind: str = "bvh", model: 
 
 def reestimate(s: SceneResult, records: list[SceneRecord], model: str, kinds=("bvh",)) -> SceneResult:
     """``s`` with its estimates recomputed from ``records`` under another calibration model
-    (the grid sample is kept: only the model changes)."""
+    (the grid's estimate is kept as it is: only the model changes)."""
     est_fn = model_functions(model)[1]
     est = dict(s.estimated)
     for k, f in fit_model(records, kinds, model).items():
         e = est_fn(f, k, s.triangles)
         est[k] = Cost(e.build, e.per_ray)
-    return SceneResult(s.name, s.triangles, s.rays, s.grid, s.measured, est, s.grid_sample_per_ray,
-                       s.estimate_time, s.samples, s.group, dict(s.extra))
+    return replace(s, estimated=est, extra=dict(s.extra))
 
 
 __all__ = [
-    "CANDIDATE_MODELS", "MODEL_DOCS", "fit_model", "model_functions", "COST_AT", "DIFFER", "RAY_COUNTS", "Cost", "SceneResult", "break_even", "error_components", "error_summary",
-    "estimate_cost_percent", "estimated_break_even", "never_agreement", "extrapolated_per_ray", "hybrid_choice", "log2n",
-    "loo_break_even_errors", "median_per_ray", "nlog2n", "online_switch", "pick_accuracy", "reestimate",
-    "relative_error", "sample_ratio", "speedup_summary", "strategy_totals", "true_break_even", "with_grid_estimate",
+    "CANDIDATE_MODELS", "COST_AT", "DIFFER", "MODEL_DOCS", "RAY_COUNTS", "REUSES_SAMPLES", "Cost", "SceneResult",
+    "break_even", "chosen_cost", "error_components", "error_summary", "estimate_cost_percent", "estimated_break_even",
+    "fit_model", "hybrid_choice", "hybrid_reuse_choice", "hybrid_totals", "log2n", "loo_break_even_errors", "median_per_ray", "model_functions",
+    "never_agreement", "nlog2n", "online_switch", "pick_accuracy", "reestimate", "relative_error", "sample_ratio",
+    "speedup_summary", "strategy_totals", "true_break_even", "with_grid_estimate",
 ]

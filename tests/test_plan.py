@@ -339,15 +339,17 @@ def test_trace_reuses_the_samples_drawn_from_the_workload():
     assert p.executed[-1]["rays"] == 900 and p.executed[-1]["reused"] == 0, p.executed
 
 
-def test_a_workload_of_at_most_k_rays_is_answered_while_planning():
+def test_a_workload_of_at_most_k_rays_is_answered_while_planning_and_keeps_the_grid():
     mesh = scenes.sphere(2000)
     o, d = uniform_rays(mesh, 250, seed=10)
     tmax = np.full(250, 0.5, np.float32)
     ref = build(mesh, "brute").trace(o, d, 0.0, tmax)
-    p = plan(mesh, 1e15, cal_of(bvh=(1e-12, 1e-12)), rays=(o, d, 0.0, tmax), samples=1000, kinds=("grid", "bvh"))
-    assert p.decision == "BVH" and p.samples == 250 and p.workload_samples == 250
+    # a nearly free BVH would win for 250 fresh rays, but none is left to trace
+    p = plan(mesh, 250, cal_of(bvh=(1e-12, 1e-12)), rays=(o, d, 0.0, tmax), samples=1000, kinds=("grid", "bvh"))
+    assert p.break_even < 250 and p.decision == "GRID", p.summary()
+    assert p.samples == 250 and p.workload_samples == 250 and any("answered by the grid" in n for n in p.notes)
     _assert_same(p.trace(o, d, 0.0, tmax), ref, "whole workload from the plan's samples")
-    assert p.executed[-1]["rays"] == 0 and p.executed[-1]["reused"] == 250, p.executed
+    assert p.executed[-1]["rays"] == 0 and p.executed[-1]["reused"] == 250 and p.structure is None, p.executed
     # occlusion answers merge from the same samples
     rest, rays = p.split(o, d, 0.0, tmax)
     assert len(rest) == 0
@@ -374,3 +376,18 @@ def test_embree_decisions_do_not_mix_in_the_grids_answers():
     assert p.reusable_samples(o, d) is None
     p.trace(o, d)
     assert p.executed[-1]["rays"] == 600 and p.executed[-1]["reused"] == 0
+
+
+def test_the_decision_weighs_the_rays_left_after_the_answered_samples():
+    # t_G 4e-6, BVH 0.01 s + 1e-6 per ray: R* = 0.01 / 3e-6 = 3,333.3 rays from zero
+    cal = cal_of(bvh=(0.01 / 10240, 1e-7))
+    fresh = plan_from_timings(N, 4000, cal, 0.0, 4e-6, kinds=("grid", "bvh"))
+    assert fresh.decision == "BVH" and fresh.break_even == pytest.approx(0.01 / 3e-6)
+    # 1,000 of the 4,000 rays already answered: 3,000 left < R*, the grid finishes them
+    left = plan_from_timings(N, 4000, cal, 0.0, 4e-6, kinds=("grid", "bvh"), answered=1000)
+    assert left.decision == "GRID" and left.break_even == fresh.break_even
+    assert plan_from_timings(N, 4400, cal, 0.0, 4e-6, kinds=("grid", "bvh"), answered=1000).decision == "BVH"
+    # a structure that retraces everything (Embree) is charged for all R rays
+    cal2 = cal_of(bvh=(1.0, 1e-7), embree=(0.01 / 10240, 1e-7))
+    assert plan_from_timings(N, 4000, cal2, 0.0, 4e-6, answered=1000).decision == "GRID"
+    assert plan_from_timings(N, 4000, cal2, 0.0, 4e-6, answered=0).decision == "EMBREE"

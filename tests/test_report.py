@@ -11,6 +11,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,11 +23,21 @@ from hybrid_raycast.core.plan import plan_from_timings
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def scene(grid=(1.0, 1e-6), bvh=(2.0, 0.5e-6), est=None, sample=None, overhead=0.1, name="s"):
-    """Grid build 1 s, 1 us/ray; BVH build 2 s, 0.5 us/ray: R_C = 2 / 0.5e-6 = 4e6 exactly."""
+def scene(grid=(1.0, 1e-6), bvh=(2.0, 0.5e-6), est=None, sample=None, overhead=0.1, name="s", raw=None):
+    """Grid build 1 s, 1 us/ray; BVH build 2 s, 0.5 us/ray: R_C = 2 / 0.5e-6 = 4e6 exactly.
+
+    sample: the grid's estimated time per ray (default exact); raw: the uncorrected K-sample time."""
     est = est or bvh
     return rep.SceneResult(name, 1024, 2_000_000, rep.Cost(*grid), {"bvh": rep.Cost(*bvh)}, {"bvh": rep.Cost(*est)},
-                           grid[1] if sample is None else sample, overhead)
+                           grid[1] if sample is None else sample, overhead, grid_sample_per_ray=raw)
+
+
+def report_script():
+    """scripts/report.py as a module (its helpers, without running it)."""
+    spec = importlib.util.spec_from_file_location("report_script", ROOT / "scripts" / "report.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 # -- break-even errors ---------------------------------------------------------------------------
@@ -79,6 +90,39 @@ def test_hybrid_with_samples_from_the_workload_skips_the_estimate_below_k_rays()
     np.testing.assert_allclose(t, [2.0, 1.0 + 0.1 + 2.0 + 8e6 * 0.5e-6])
 
 
+def test_reuse_totals_are_the_arithmetic_of_the_kept_samples():
+    s = scene(overhead=0.1)  # R_est = R_C = 4e6
+    s.samples, s.reuse_estimate_time = 100_000, 0.15
+    t = rep.strategy_totals(s, [5e4, 1e6, 1e7], batch=1)
+    # (i) separate samples: grid build + e + the choice on all R rays
+    np.testing.assert_allclose(t["hybrid"], [1.0 + 0.1 + 0.05, 1.0 + 0.1 + 1.0, 1.0 + 0.1 + 2.0 + 5.0])
+    # (ii) R <= K: the grid answered everything while planning; else grid build + e' + the choice on R - K
+    np.testing.assert_allclose(t["hybrid_reuse"], [1.0 + 0.05, 1.0 + 0.15 + 0.9e6 * 1e-6,
+                                                   1.0 + 0.15 + 2.0 + (1e7 - 1e5) * 0.5e-6])
+    # net cost of (ii) at 1e6 rays: e' less what the grid would have spent on the K rays, over T_B^G + R t_G
+    assert rep.estimate_cost_percent(s, 1e6, reuse=True) == pytest.approx(100 * (0.15 - 1e5 * 1e-6) / 2.0)
+    assert rep.estimate_cost_percent(s, 1e6) == pytest.approx(100 * 0.1 / 2.0)
+
+
+def test_reuse_keeps_the_grid_when_it_answered_everything_while_planning():
+    s = scene(est=(0.01, 0.5e-6))  # R_est = 0.01 / 0.5e-6 = 2e4
+    s.samples = 100_000
+    t = rep.strategy_totals(s, [1e4, 5e4], batch=1)
+    # with separate samples the plan picks the BVH past R_est; with workload samples every
+    # ray up to K was answered while planning, so nothing is built
+    assert list(t["choice"]) == ["grid", "bvh"] and list(t["choice_reuse"]) == ["grid", "grid"]
+    np.testing.assert_allclose(t["hybrid_reuse"], [1.0 + 0.01, 1.0 + 0.05])
+
+
+def test_embree_retraces_the_sample_rays():
+    s = scene()
+    s.measured["embree"] = s.estimated["embree"] = rep.Cost(0.5, 0.1e-6)
+    s.samples, s.reuse_estimate_time = 100_000, 0.15
+    t = rep.strategy_totals(s, [1e7], kinds=("bvh", "embree"), batch=1)
+    assert t["choice"][0] == "embree"
+    assert t["hybrid_reuse"][0] == pytest.approx(1.0 + 0.15 + 0.5 + 1e7 * 0.1e-6), "all R rays, not R - K"
+
+
 def test_online_switches_on_the_batch_boundary_after_the_estimated_build_time():
     s = scene()
     batch = 1 << 15
@@ -107,6 +151,23 @@ def test_hybrid_choice_matches_plan_from_timings():
     for r in np.logspace(2, 9, 50):
         want = plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh", "embree")).chosen
         assert rep.hybrid_choice(s, [r], ("bvh", "embree"))[0] == want, f"R = {r:.3g}"
+
+
+def test_hybrid_reuse_choice_matches_plan_from_timings_with_answered_samples():
+    n, k = 1024, 4096
+    cal = Calibration({"bvh": KindFit(1e-5, 5e-8, 1e-5, 1e-5, 5e-8, 5e-8, 1),
+                       "embree": KindFit(2e-5, 1e-8, 2e-5, 2e-5, 1e-8, 1e-8, 1)}, source="hand")
+    est = {kk: rep.Cost(cal.estimate(kk, n).build, cal.estimate(kk, n).per_ray) for kk in ("bvh", "embree")}
+    s = rep.SceneResult("s", n, 1, rep.Cost(0.01, 2e-6), dict(est), est, 2e-6, 0.0, k)
+    seen = set()
+    for r in np.logspace(2, 9, 60):
+        want = plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh", "embree"), answered=min(k, int(r))).chosen
+        got = rep.hybrid_reuse_choice(s, [r], ("bvh", "embree"))[0]
+        assert got == want, f"R = {r:.3g}: {got} vs {want}"
+        seen.add(got)
+        if r <= k:
+            assert got == "grid", "a workload answered while planning needs no structure"
+    assert len(seen) >= 2, f"the sweep should cross a break-even: {seen}"
 
 
 def test_pick_accuracy_counts_only_cases_that_differ_by_more_than_ten_percent():
@@ -140,25 +201,94 @@ def test_estimate_cost_is_a_percentage_of_the_grid_only_total_at_a_million_rays(
 def test_median_per_ray_and_error_components():
     a, b = scene(name="a"), scene(grid=(1.0, 3e-6), name="b")
     assert rep.median_per_ray([a, b]) == {"grid": pytest.approx(2e-6), "bvh": pytest.approx(0.5e-6)}
-    c = rep.error_components(scene(est=(3.0, 0.25e-6), sample=1.5e-6))
-    assert c == {"build": pytest.approx(50.0), "per_ray": pytest.approx(-50.0), "grid_per_ray": pytest.approx(50.0)}
+    c = rep.error_components(scene(est=(3.0, 0.25e-6), sample=1.5e-6, raw=3e-6))
+    assert c == {"build": pytest.approx(50.0), "per_ray": pytest.approx(-50.0), "grid_per_ray": pytest.approx(50.0),
+                 "grid_sample": pytest.approx(200.0)}
+    assert math.isnan(rep.error_components(scene())["grid_sample"]), "no raw sample recorded"
 
 
 def test_scene_result_round_trips_through_a_dict():
-    s = scene()
+    s = scene(raw=2e-6)
+    s.reuse_estimate_time = 0.05
     assert rep.SceneResult.from_dict(json.loads(json.dumps(s.to_dict()))) == s
 
 
-# -- the grid from two batches --------------------------------------------------------------------
+# -- the grid's estimate --------------------------------------------------------------------------
 
-def test_two_batch_extrapolation_is_exact_on_an_affine_batch_cost():
-    s, f = 1e-6, 0.05  # per-ray part and per-batch part
-    t = lambda b: b * s + f  # noqa: E731
-    got = rep.extrapolated_per_ray(4096, t(4096), 12288, t(12288), chunk=1 << 15, threads=2)
-    assert got == pytest.approx(s + f / (2 * (1 << 15)), rel=1e-9)
-    # noise that makes the per-batch part negative falls back on the plain mean
-    assert rep.extrapolated_per_ray(100, 0.1, 300, 1.0, 10, 1) == pytest.approx(1.1 / 400)
-    assert rep.extrapolated_per_ray(100, 1.0, 300, 0.9, 10, 1) == pytest.approx(1.9 / 400), "a slower small batch: s < 0"
+def test_the_uncorrected_estimate_is_the_raw_sample_used_as_it_is():
+    s = scene(est=(1.0, 0.5e-6), sample=1.5e-6, raw=3e-6)  # the plan corrected 3 us by a ratio of 0.5
+    assert s.grid_sample_ratio == pytest.approx(0.5) and scene().grid_sample_ratio is None
+    assert rep.estimated_break_even(s) == pytest.approx(1.0 / 1e-6)
+    u = rep.with_grid_estimate(s, s.grid_sample_per_ray)
+    assert u.grid_estimate_per_ray == 3e-6 and rep.estimated_break_even(u) == pytest.approx(1.0 / 2.5e-6)
+    assert s.grid_estimate_per_ray == 1.5e-6 and s.estimated == u.estimated, "the original is left alone"
+    assert rep.sample_ratio([1e-6, 2e-6, None], [2e-6, 2e-6, 1e-6])["median"] == pytest.approx(0.75)
+
+
+def hand_calibration(ratio=0.5):
+    """BVH constants that make it far faster per ray than the grid; grid samples whose
+    large-workload / sample ratio is ``ratio`` at every K."""
+    recs = []
+    for i, n in enumerate((500, 2000, 8000)):
+        rec = SceneRecord(f"c{i}", n, 1000, {"grid": Measurement(0.001, 1e-3, 1000)})
+        rec.grid_samples = {k: 1e-6 / ratio for k in (256, 1024, 4096)}
+        recs.append(rec)
+    return Calibration({"bvh": KindFit(1e-7, 1e-9, 1e-7, 1e-7, 1e-9, 1e-9, 3)}, scenes=recs, model="paper", source="hand")
+
+
+def test_a_measured_scene_takes_the_plans_corrected_grid_estimate_once():
+    from hybrid_raycast.core import scenes as S
+
+    R = report_script()
+    args = SimpleNamespace(rays=4000, seed=0, samples=512)
+    s, rays, _, _ = R.measure_scene("t", "procedural", S.make_scene("sphere", 2000, seed=5), hand_calibration(0.5), args, ("bvh",))
+    assert s.samples == 512 and s.grid_sample_ratio == pytest.approx(0.5)
+    assert s.grid_estimate_per_ray == pytest.approx(0.5 * s.grid_sample_per_ray, rel=1e-12)
+    # the headline's R_est is the plan's own break-even, with the corrected grid time
+    assert rep.estimated_break_even(s) == pytest.approx(s.extra["plan_break_even"]["bvh"], rel=1e-12)
+    e = s.estimated["bvh"]
+    assert rep.estimated_break_even(s) == pytest.approx(rep.break_even(e.build, 0.5 * s.grid_sample_per_ray, e.per_ray))
+    # the comparison is the raw sample, not corrected twice nor left corrected
+    u = R.grid_estimators(s)["uncorrected"]
+    assert u.grid_estimate_per_ray == s.grid_sample_per_ray and set(R.grid_estimators(s)) == set(R.GRID_ESTIMATES)
+    # the reuse plan drew its K samples from the workload
+    assert s.extra["reuse_plan"]["workload_samples"] == 512 and s.reuse_estimate_time > 0 and len(rays[0]) == 4000
+
+
+def test_decide_model_compares_models_under_the_plans_estimate():
+    R = report_script()
+
+    def entry(plan, uncorrected, loo):
+        held = lambda x: {"held_out": {"median_abs": x}}  # noqa: E731
+        return {"loo": {"median_abs": loo}, "grid": {"plan": held(plan), "uncorrected": held(uncorrected)}}
+
+    # affine is worse than paper uncorrected but better under the plan's estimate, and better leave-one-out
+    models = {"paper": entry(30.0, 20.0, 400.0), "affine": entry(15.0, 70.0, 25.0), "median": entry(40.0, 20.0, 500.0)}
+    best, text = R.decide_model(models, "affine", "affine")
+    assert best == "affine" and "agrees with the default" in text
+    models["affine"] = entry(35.0, 10.0, 25.0)  # no longer beats paper where it counts
+    assert R.decide_model(models, "affine", "affine")[0] == "paper"
+    models["affine"] = entry(math.nan, 10.0, 25.0)
+    assert R.decide_model(models, "affine", "affine")[0] == "paper"
+
+
+def test_markdown_tolerates_undefined_errors_and_summaries(tmp_path):
+    R = report_script()
+    never = [scene(bvh=(2.0, 2e-6), raw=2e-6, name=f"n{i}") for i in range(2)]  # the BVH never pays: errors undefined
+    for s in never:
+        s.samples = 1024
+    summ = R.summarise(never, ("bvh",), 1024)
+    assert summ["errors"]["defined"] == 0 and math.isnan(summ["errors"]["sum"])
+    cal = {"scenes": 3, "rays_per_scene": 1000, "ladder": [1024], "how": "hand", "model": "affine",
+           "default_model": "affine", "ratio_at_samples": None}
+    meta = {"command": "test", "date": "today", "duration_s": 1.0, "cpus": 2, "processor": "cpu", "load_before": None,
+            "load_after": None, "python": "3", "numpy": "1", "quick": True, "calibration": cal, "rays": 1000,
+            "samples": 1024, "threads": {}, "sweep_rays": 0, "sweep_repeats": 0}
+    data = R.jsonable({"meta": meta, "summary": summ, "scenes": R.scene_rows(never), "plots": [], "notes": []})
+    R.write_markdown(tmp_path / "r.md", data)
+    md = (tmp_path / "r.md").read_text()
+    assert "sum of errors n/a" in md and "| never (never, never) |" not in md and "never [" in md
+    assert R.fnum(None, 1, None) == "n/a" and R.fnum(math.inf) == "never" and R.fbe(None) == "never"
 
 
 # -- model candidates -----------------------------------------------------------------------------
@@ -204,7 +334,7 @@ def test_affine_model_is_a_calibration_model_that_survives_save_and_load(tmp_pat
 def test_reestimate_changes_only_the_estimates():
     s = scene()
     s2 = rep.reestimate(s, records(), "paper")
-    assert s2.measured == s.measured and s2.grid == s.grid and s2.grid_sample_per_ray == s.grid_sample_per_ray
+    assert s2.measured == s.measured and s2.grid == s.grid and s2.grid_estimate_per_ray == s.grid_estimate_per_ray
     assert s2.estimated["bvh"].build == pytest.approx(2e-7 * nlog2n(1024))
 
 
@@ -219,15 +349,35 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
     assert data["meta"]["quick"] is True and len(data["scenes"]) == 4
     for s in data["scenes"]:
         assert s["measured"]["bvh"]["per_ray"] > 0 and s["grid"]["per_ray"] > 0, s["name"]
-    heads = {h["measure"] for h in data["summary"]["headline"]}
-    assert any("median absolute break-even error" in h for h in heads) and any("oracle" in h for h in heads)
+    heads = [h["measure"] for h in data["summary"]["headline"]]
+    assert any("median absolute break-even error" in h for h in heads)
+    assert any("(ii)" in h and "oracle" in h for h in heads) and any("(i)" in h and "oracle" in h for h in heads)
+    from hybrid_raycast.core.calibration import DEFAULT_MODEL
+
+    cal = data["meta"]["calibration"]
+    assert cal["model"] == cal["default_model"] == DEFAULT_MODEL, "the headline is the add-on as it stands"
+    assert cal["ladder"] == [256, 1024] and cal["ratio_at_samples"]["median"] > 0
+    for s in data["scenes"]:
+        # the estimate is the plan's corrected grid time: raw sample x the calibration's ratio, once
+        ratio = s["extra"]["grid_sample_ratio"][0]
+        assert ratio == pytest.approx(cal["ratio_at_samples"]["median"]), s["name"]
+        assert s["grid_estimate_per_ray"] == pytest.approx(s["grid_sample_per_ray"] * ratio, rel=1e-9), s["name"]
+        assert s["R_est"] == (pytest.approx(s["extra"]["plan_break_even"]["bvh"]) if s["R_est"] is not None else None)
+        assert s["extra"]["reuse_plan"]["workload_samples"] == s["samples"] == 1024
     assert {"paper", "affine", "median"} <= set(data["models"])
     for name, m in data["models"].items():
-        assert set(m["grid"]) == {"single", "two-batch", "ratio"}, f"model {name}: grid estimators {set(m['grid'])}"
+        assert set(m["grid"]) == {"plan", "uncorrected"}, f"model {name}: grid estimators {set(m['grid'])}"
+    # the affine (default) model under the plan's estimate reproduces the headline's error
+    assert data["models"][DEFAULT_MODEL]["grid"]["plan"]["held_out"]["median_abs"] == data["summary"]["errors"]["median_abs"]
     assert data["sweep"]["rows"], "the speed-against-error sweep recorded nothing"
+    for r in data["sweep"]["rows"]:
+        assert r["plan"]["per_ray"] == pytest.approx(r["uncorrected"]["per_ray"] * r["ratio"], rel=1e-9)
+    assert set(data["sweep"]["tables"]) == {"plan", "uncorrected"}
     md = (out / "report.md").read_text()
-    for title in ("## Headline", "## Break-even per scene", "## Speed: hybrid", "## Speed against error", "## Refinements"):
+    for title in ("## Headline", "## Break-even per scene", "## Speed: hybrid", "## Speed against error",
+                  "## The grid's small-batch ratio", "## Refinements"):
         assert title in md, f"report.md lacks the section {title!r}"
+    assert "not in `core.plan` yet" not in md and "proposed refinement" not in md
     if importlib.util.find_spec("matplotlib") is not None:
         for p in ("errors.png", "totals.png", "speed_vs_error.png"):
             assert (out / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", f"{p} is not a PNG"
