@@ -25,8 +25,8 @@ Strategies compared per (scene, R), all in seconds:
   structure traces only the R - K others (Embree, which does not answer bit for bit like
   the grid, retraces all R).  The estimate then costs its arithmetic plus the difference
   between the grid's sample time and what those K rays cost with the chosen structure.
-  When R <= K the grid answers the whole workload while planning; a structure the plan
-  still chooses (R > R_est) is built for nothing, as the add-on does today;
+  The decision weighs the rays left (``hybrid_reuse_choice``), so when R <= K the grid,
+  which answered the whole workload while planning, is kept;
 - online       the ski-rental rule of ``plan.trace_online``: the grid traces in batches
   until its accumulated trace time reaches H's *estimated* build time, then H is built
   and traces the rest, at true costs; switching happens on batch boundaries and only
