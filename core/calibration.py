@@ -66,7 +66,7 @@ DEFAULT_SPREAD = (10.0, 90.0)
 RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17}
 #: sample sizes K at which calibration times the grid on each scene, to correct a plan's
 #: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
-SAMPLE_LADDER = (1024, 4096, 16384, 65536)
+SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
 #: structures whose per-scene times are recorded, and the ones whose constants are fitted
 RECORDED_ONLY = ("grid",)
 
