@@ -67,6 +67,9 @@ RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17}
 #: sample sizes K at which calibration times the grid on each scene, to correct a plan's
 #: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
 SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
+#: the least number of rays the grid's large-workload time per ray is measured on when
+#: samples are timed (whatever the scale's rays per scene)
+GRID_LARGE_RAYS = 1 << 17
 #: structures whose per-scene times are recorded, and the ones whose constants are fitted
 RECORDED_ONLY = ("grid",)
 
@@ -615,6 +618,10 @@ def _measure_grid(mesh, origins, directions, ladder, threads, config, seed):
         grid = build(mesh, "grid", **cfg)
         samples[int(k)] = time_trace(grid, o, d)[1] / int(k)
         del grid
+    if ladder and len(origins) < GRID_LARGE_RAYS:
+        # the ratio needs a large workload's time per ray: the 'tiny' and 'quick' scales'
+        # few rays per scene would themselves be a small batch (a ratio of 2 measured)
+        origins, directions = uniform_rays(mesh, GRID_LARGE_RAYS, seed=seed)
     grid = build(mesh, "grid", **cfg)
     _, dt = time_trace(grid, origins, directions)
     return Measurement(float(grid.build_time), float(dt), int(len(origins)), int(grid.threads)), samples

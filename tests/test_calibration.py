@@ -361,3 +361,13 @@ def test_time_trace_runs_the_batch_as_trace_does_and_leaves_the_chunk_size_alone
     hits, dt = C.time_trace(g, o, d)
     assert dt > 0 and np.array_equal(hits.triangle, g.trace(o, d).triangle)
     assert "chunk_size" not in g.__dict__, "time_trace must not change the structure's chunks"
+
+
+def test_small_scales_still_time_the_grid_on_a_large_workload_for_the_ratio():
+    # 'tiny' traces 2,000 rays per scene: as the ratio's reference that is itself a small
+    # batch (a ratio of 2 was measured); the grid's reference is at least GRID_LARGE_RAYS
+    cal = calibrate(S.calibration_set("tiny")[:2], kinds=("bvh",), rays_per_scene=2000, sample_ladder=(1024, 16384))
+    for r in cal.scenes:
+        assert r.kinds["grid"].rays >= C.GRID_LARGE_RAYS and r.kinds["bvh"].rays == 2000
+    med, lo, hi = cal.grid_sample_ratio(16384)
+    assert 0 < lo <= med <= hi and med < 1.5, (med, lo, hi)

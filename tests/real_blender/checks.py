@@ -88,6 +88,14 @@ check("decision follows the break-even", (props.decision == "GRID") == (props.an
       f"{props.decision}, R={props.analyzed_rays}, R*={be}")
 record = json.loads(props.last_analysis_json)
 check("stored JSON matches the properties", record["decision"] == props.decision and record["summary"]["triangles"] == 12)
+plan = record["plan"]
+check("grid estimate is the sample time times this machine's batch ratio (0 < ratio <= 1.5)",
+      0 < props.grid_sample_ratio <= 1.5
+      and abs(props.grid_sample_ratio - plan["grid_sample_ratio"]) <= 1e-6 * plan["grid_sample_ratio"],
+      f"ratio {props.grid_sample_ratio} vs {plan['grid_sample_ratio']}")
+check("grid per ray = sample x ratio",
+      abs(props.grid_per_ray - plan["grid_sample_per_ray"] * plan["grid_sample_ratio"]) <= 1e-5 * props.grid_per_ray,
+      f"{props.grid_per_ray} vs {plan['grid_sample_per_ray']} x {plan['grid_sample_ratio']}")
 check("results fresh after analyze", not props.stale, props.stale_reason)
 bpy.data.objects["Camera"].location.x += 1
 bpy.context.evaluated_depsgraph_get()
