@@ -160,8 +160,9 @@ def apply_trace(scene, result) -> list[tuple[str, str]]:
     built = f", built in {result['build_time'] * 1e3:.0f} ms" if result["build_time"] else ""
     traced = result["traced"]
     early = f" ({m - traced:,} of them answered while planning)" if traced < m else ""
-    msgs.append(("INFO", f"traced {m:,} {what}{early} with {plan.decision}{built}, in {result['trace_time']:.2f} s "
-                         f"({traced / max(result['trace_time'], 1e-9):,.0f} rays/s){tail}"))
+    rate = f" ({traced / max(result['trace_time'], 1e-9):,.0f} rays/s)" if traced else ""
+    msgs.append(("INFO", f"traced {m:,} {what}{early} with {plan.decision}{built}, in {result['trace_time']:.2f} s"
+                         f"{rate}{tail}"))
     return msgs
 
 
