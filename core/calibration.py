@@ -609,22 +609,15 @@ def _measure_grid(mesh, origins, directions, ladder, threads, config, seed):
     batch would miss that."""
     from .rays import uniform_rays
 
-    cfg = dict(config or {})
-    if threads is not None:
-        cfg.setdefault("threads", threads)
     samples = {}
     for k in ladder:
         o, d = uniform_rays(mesh, int(k), seed=seed + int(k))
-        grid = build(mesh, "grid", **cfg)
-        samples[int(k)] = time_trace(grid, o, d)[1] / int(k)
-        del grid
+        samples[int(k)] = measure(mesh, "grid", o, d, threads=threads, config=config).per_ray
     if ladder and len(origins) < GRID_LARGE_RAYS:
         # the ratio needs a large workload's time per ray: the 'tiny' and 'quick' scales'
         # few rays per scene would themselves be a small batch (a ratio of 2 measured)
         origins, directions = uniform_rays(mesh, GRID_LARGE_RAYS, seed=seed)
-    grid = build(mesh, "grid", **cfg)
-    _, dt = time_trace(grid, origins, directions)
-    return Measurement(float(grid.build_time), float(dt), int(len(origins)), int(grid.threads)), samples
+    return measure(mesh, "grid", origins, directions, threads=threads, config=config), samples
 
 
 def _size_hint(factory) -> float:

@@ -41,8 +41,8 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from .plan import REUSES_SAMPLES as _REUSES
 from .calibration import DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, log2n, nlog2n
+from .plan import REUSES_SAMPLES
 
 #: the ray counts of the speedup tables: 1e3 to 1e8, four points a decade
 RAY_COUNTS = np.logspace(3, 8, 21)
@@ -50,9 +50,6 @@ RAY_COUNTS = np.logspace(3, 8, 21)
 DIFFER = 0.10
 #: ray count at which the estimate's own cost is quoted
 COST_AT = 1e6
-#: structures that answer a ray bit for bit like the grid, so a plan given the workload
-#: keeps its sample's answers when it chooses them (``Plan.reusable_samples``)
-REUSES_SAMPLES = _REUSES
 
 
 @dataclass

@@ -292,8 +292,7 @@ def model_comparison(scenes, cal: Calibration):
 
 def median_abs(values) -> float:
     """Median of the finite absolute values (NaN when there are none)."""
-    v = [abs(x) for x in values if x is not None and math.isfinite(x)]
-    return float(np.median(v)) if v else math.nan
+    return median_finite([abs(x) for x in values if x is not None])
 
 
 def decide_model(models, current: str, default: str) -> tuple[str, str]:
