@@ -41,11 +41,11 @@ from .calibration import Calibration, _prepare, available_kinds, load_default, t
 from .hits import Hits
 from .mesh import TriangleMesh
 
-#: default number of sample rays traced through the grid.  Three full runs of the
-#: report (docs/report/report.md, BENCHMARKS.md) with K = 8,192, 16,384 and 65,536 gave
-#: median break-even errors of 55%, 33% and 32% and estimate costs (separate samples, at
-#: 1e6 rays) of 2.2%, 3.2% and 8.9%: 16,384 is the cheapest K at the accuracy floor
-#: that this machine's timing noise sets (R_C's own repeatability is 14-32%).
+#: default number of sample rays traced through the grid.  Full runs of the report
+#: (docs/report/report.md, BENCHMARKS.md) with K = 8,192, 16,384 (three runs) and 65,536
+#: gave median break-even errors of 55%, 33-45% and 32% and estimate costs (separate
+#: samples, at 1e6 rays) of 2.2%, 2.5-3.2% and 8.9%: 16,384 is the cheapest K at the
+#: accuracy floor that this machine's timing noise sets (R_C's own repeatability 14-32%).
 DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
