@@ -29,6 +29,8 @@ from .intersect import NearestHits, Rays, intersect
 
 F64 = np.float64
 EPS32 = float(np.finfo(np.float32).eps)
+#: empty-space skip: empty cubes of radius up to 2**SKIP_LEVELS - 1 cells (``empty_radius``)
+SKIP_LEVELS = 4
 
 
 def grid_resolution(extent, n, density, max_cells):
@@ -90,6 +92,43 @@ def _pieces(counts, cap):
         yield _expand(counts, lo, min(total, lo + cap))
 
 
+def empty_radius(occupied, levels=SKIP_LEVELS):
+    """Per cell, a radius r such that the cube of (2r+1)^3 cells around it holds no
+    occupied cell and lies inside the grid (r = 0: no such cube beyond the cell itself).
+
+    r is the largest of 0, 1, 3, 7, ..., 2**levels - 1 that fits: the occupied set is
+    dilated by cubes of those radii, each from the one before (a cube of radius m
+    unioned with its shifts by +-(m+1) along an axis covers radius 2m+1), so ``levels``
+    rounds of three shifted ORs per axis instead of a full distance transform; r is at
+    most a factor of two below the exact chessboard distance.
+    """
+    shape = occupied.shape
+    covered = occupied.copy()
+    r = np.zeros(shape, np.uint8)
+    m = 0
+    for _ in range(levels):
+        s = m + 1
+        for axis in range(3):
+            if shape[axis] <= s:
+                continue
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[axis], hi[axis] = slice(0, shape[axis] - s), slice(s, shape[axis])
+            lo, hi = tuple(lo), tuple(hi)
+            src = covered.copy()
+            covered[lo] |= src[hi]
+            covered[hi] |= src[lo]
+        m = 2 * m + 1
+        np.copyto(r, np.uint8(m), where=~covered)
+    # the cube must stay inside the grid: at most the cells left to the nearest face
+    for axis in range(3):
+        n = shape[axis]
+        idx = np.arange(n)
+        face = np.minimum(np.minimum(idx, n - 1 - idx), 255).astype(np.uint8)
+        np.minimum(r, face.reshape([-1 if a == axis else 1 for a in range(3)]), out=r)
+    return r
+
+
 def _radix_order(keys, nkeys):
     """Stable order of non-negative integer keys < nkeys < 2**32 in O(len(keys)).
 
@@ -127,13 +166,18 @@ class UniformGrid(Accel):
         the triangle's bounding box enlarged by a bound on the kernel's float32 slack
         (see ``_box_filter``); most pairs of a cell miss, and the test costs a fraction
         of the kernel.  The kernel alone still decides every hit.
+    ``skip`` (default True): empty-space skipping over the same cells.  Each cell stores
+        the radius r of a cube of empty cells around it (``empty_radius``: 0, 1, 3, 7 or
+        15 cells); a ray in an empty cell with r >= 1
+        jumps through that cube in one DDA step, to the last cell of the cube on its
+        path.  Cells skipped hold no reference, so the hits are those of the plain DDA.
     """
 
     kind = "grid"
     chunk_size = 1 << 15
 
     def __init__(self, mesh, *, density: float = 2.0, max_cells: int = 1 << 24, margin: float = 1e-3,
-                 pair_cap: int = 1 << 17, prefilter: bool = True, **kw):
+                 pair_cap: int = 1 << 17, prefilter: bool = True, skip: bool = True, **kw):
         if not density > 0:
             raise ValueError(f"density must be > 0, got {density}")
         self.density = float(density)
@@ -141,6 +185,7 @@ class UniformGrid(Accel):
         self.margin = float(margin)
         self.pair_cap = max(1, int(pair_cap))
         self.prefilter = bool(prefilter)
+        self.skip = bool(skip)
         super().__init__(mesh, **kw)
 
     # -- build -----------------------------------------------------------------------
@@ -254,6 +299,11 @@ class UniformGrid(Accel):
         self.cell_tris = cell_tris.astype(np.int32, copy=False)
         self._starts_lo = full[:-1]
         self._starts_hi = full[1:]
+        # empty-space skip, looked up with the same padded cell ids (0 in the padding: no jump)
+        self._skip = np.zeros(len(full) - 1, np.uint8)
+        if self.skip:
+            occupied = (np.diff(cell_start) > 0).reshape(self.res[::-1])
+            self._skip[pad : pad + self.ncells] = empty_radius(occupied).ravel()
 
     def _sat_refs(self, tv, ids, i0, span, planes, cells, tris):
         """Akenine-Moeller's separating-axis test for (triangle, cell) candidates.
@@ -410,7 +460,26 @@ class UniformGrid(Accel):
                     k = self._box_filter(Rz, owner, tri)
                     owner, tri = np.take(owner, k), np.take(tri, k)
                 yield owner, np.take(rr, owner), tri
+        skip = self._skip
         while I.shape[1]:
+            # empty-space skip: a ray in an empty cell whose cube of radius r around it is
+            # empty moves to the cell of that cube where its path leaves the cube.  Per axis
+            # it crosses n = ceil((t_out - t_next) / t_delta) boundaries before t_out,
+            # clamped to [0, r]: whatever the rounding, it lands inside the (empty) cube, with
+            # the boundary parameters of the cell it lands in.
+            j = np.flatnonzero(np.take(skip, I[0]))
+            if j.size:
+                r = np.take(skip, np.take(I[0], j)).astype(F64)
+                Fj = np.take(F[0:6], j, axis=1)
+                with np.errstate(invalid="ignore"):  # inf - inf on axes the ray never steps on
+                    t_out = np.minimum(np.minimum(Fj[0] + r * Fj[3], Fj[1] + r * Fj[4]), Fj[2] + r * Fj[5])
+                    cell = np.take(I[0], j)
+                    for a in range(3):
+                        n = np.ceil((t_out - Fj[a]) / Fj[3 + a])
+                        n = np.minimum(np.where(n > 0, n, 0.0), r)  # NaN (never steps): 0
+                        F[a, j] = np.where(n > 0, Fj[a] + n * Fj[3 + a], Fj[a])
+                        cell += n.astype(np.int64) * np.take(I[1 + a], j)
+                I[0, j] = cell
             s = np.take(s_lo, I[0])
             cnt = np.take(s_hi, I[0])
             cnt -= s
@@ -510,9 +579,11 @@ class UniformGrid(Accel):
             "references": refs,
             "refs_per_triangle": refs / n_valid if n_valid else 0.0,
             "empty_cell_fraction": float((counts == 0).mean()),
+            # cells from which a ray jumps (an empty cube of radius >= 1 around them)
+            "skippable_cell_fraction": float(np.count_nonzero(self._skip) / max(1, self.ncells)),
             "max_refs_per_cell": int(counts.max()) if counts.size else 0,
             "cell_size": tuple(float(c) for c in self.cell_size),
             "delta": self.delta,
             "memory_bytes": int(self._starts_lo.nbytes + self.cell_start.itemsize + self.cell_tris.nbytes
-                                + self._tri_box.nbytes),
+                                + self._tri_box.nbytes + self._skip.nbytes),
         }
