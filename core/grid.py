@@ -174,7 +174,7 @@ class UniformGrid(Accel):
     """
 
     kind = "grid"
-    chunk_size = 1 << 15
+    chunk_size = 1 << 16
 
     def __init__(self, mesh, *, density: float = 2.0, max_cells: int = 1 << 24, margin: float = 1e-3,
                  pair_cap: int = 1 << 17, prefilter: bool = True, skip: bool = True, **kw):
@@ -197,8 +197,9 @@ class UniformGrid(Accel):
         ids = np.flatnonzero(mesh.valid).astype(np.int32)
         n = len(ids)
         tv = mesh.tri_vertices if n == mesh.triangle_count else mesh.tri_vertices[ids]
-        # per-triangle float32 boxes, component-major (lo xyz, hi xyz), for _box_filter
-        self._tri_box = np.zeros((6, mesh.triangle_count), np.float32)
+        # per-triangle float32 boxes (lo xyz, hi xyz) for _box_filter, one row per triangle:
+        # the filter's six gathers for a pair then read one cache line, not six
+        self._tri_box = np.zeros((mesh.triangle_count, 6), np.float32)
         if n == 0:
             self.lo = np.zeros(3)
             self.res = np.ones(3, np.int64)
@@ -243,8 +244,8 @@ class UniformGrid(Accel):
         tlo = [np.minimum(np.minimum(tv[:, 0, k], tv[:, 1, k]), tv[:, 2, k]) for k in range(3)]
         thi = [np.maximum(np.maximum(tv[:, 0, k], tv[:, 1, k]), tv[:, 2, k]) for k in range(3)]
         for k in range(3):
-            self._tri_box[k, box_at] = tlo[k]
-            self._tri_box[3 + k, box_at] = thi[k]
+            self._tri_box[box_at, k] = tlo[k]
+            self._tri_box[box_at, 3 + k] = thi[k]
         # cell range of each triangle's box enlarged by delta (float64: exact enough that
         # only delta, not rounding, decides)
         c_lo = self.lo + self.delta
@@ -546,15 +547,16 @@ class UniformGrid(Accel):
         NaN from 0 * inf (a zero direction component on a box face) keeps the pair:
         the test is ``not (t_near > t_far)``.
         """
-        B = self._tri_box
+        B = self._tri_box.reshape(-1)
+        t6 = tri.astype(np.intp) * 6
         e = np.take(R[6], r)
         t_near = t_far = None
         with np.errstate(invalid="ignore", over="ignore"):
             for k in range(3):
                 o = np.take(R[k], r)
                 iv = np.take(R[3 + k], r)
-                a = (np.take(B[k], tri) - o - e) * iv
-                b = (np.take(B[3 + k], tri) - o + e) * iv
+                a = (B[k:].take(t6) - o - e) * iv
+                b = (B[3 + k:].take(t6) - o + e) * iv
                 lo_k, hi_k = np.minimum(a, b), np.maximum(a, b)
                 t_near = lo_k if t_near is None else np.maximum(t_near, lo_k)
                 t_far = hi_k if t_far is None else np.minimum(t_far, hi_k)
