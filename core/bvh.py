@@ -39,16 +39,15 @@ from __future__ import annotations
 import numpy as np
 
 from .accel import Accel
-from .intersect import NearestHits, Rays, intersect
+from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F32 = np.float32
 WIDTH = 4
-EPS32 = 2.0**-24  # float32 unit roundoff
 
 
 def gamma(n: int) -> float:
-    """pbrt's error bound gamma(n) = n*eps / (1 - n*eps) for n float32 roundings."""
-    return n * EPS32 / (1 - n * EPS32)
+    """pbrt's error bound gamma(n) = n*u / (1 - n*u) for n float32 roundings (u: ``UNIT_ROUNDOFF``)."""
+    return n * UNIT_ROUNDOFF / (1 - n * UNIT_ROUNDOFF)
 
 
 #: Ize 2013: exit distances (and the best-hit bound) widened by 1 + 2*gamma(3).

@@ -11,7 +11,7 @@
 
 Why the result equals brute force hit for hit (same kernel, same tie rule): the kernel
 reports a hit only where the exact ray passes within its float32 slack (about 2u times
-the origin's distance, u = 2**-24) of the triangle, at a t whose ray point is that close
+the origin's distance, u = ``UNIT_ROUNDOFF`` = 2**-24) of the triangle, at a t whose ray point is that close
 to it.  Every cell is enlarged by ``delta`` (far above that slack for origins within a
 few scene sizes) when its references are chosen, and a ray stops in a cell only when its
 best t plus ``mu`` (a bound on the kernel's error in t) is at most the cell's exit
@@ -25,10 +25,9 @@ from __future__ import annotations
 import numpy as np
 
 from .accel import Accel
-from .intersect import NearestHits, Rays, intersect
+from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F64 = np.float64
-EPS32 = float(np.finfo(np.float32).eps)
 #: empty-space skip: empty cubes of radius up to 2**SKIP_LEVELS - 1 cells (``empty_radius``)
 SKIP_LEVELS = 4
 
@@ -430,7 +429,7 @@ class UniformGrid(Accel):
         # a grid point seen from the origin; a hit reported a little early still has its
         # true point inside a visited cell.
         far = np.maximum(np.abs(o - self.lo), np.abs(o - self.hi))
-        F[8] = 64 * EPS32 * np.sqrt((far * far).sum(axis=1) / (d * d).sum(axis=1))
+        F[8] = 128 * UNIT_ROUNDOFF * np.sqrt((far * far).sum(axis=1) / (d * d).sum(axis=1))
         I[0] = idx @ self.stride + self._pad
         I[1:4] = (step * self.stride).T
         I[4] = live
@@ -533,7 +532,7 @@ class UniformGrid(Accel):
         R[0:3] = o.T
         with np.errstate(divide="ignore", over="ignore"):
             R[3:6] = (np.float32(1) / rays.directions).T
-        R[6] = 64 * EPS32 * np.sqrt((far * far).sum(axis=1))
+        R[6] = 128 * UNIT_ROUNDOFF * np.sqrt((far * far).sum(axis=1))
         return R
 
     def _box_filter(self, R, r, tri):

@@ -19,6 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 F32 = np.float32
+#: u, the unit roundoff of float32 (half its machine epsilon 2**-23): one correctly rounded
+#: float32 operation errs by at most u times its result (Higham, "Accuracy and Stability of
+#: Numerical Algorithms", 2.2).  The numpy structures' error bounds are multiples of it:
+#: the BVH's slab widening 1 + 2*gamma(3) (bvh.py) and the grid's slack 128u times the
+#: origin's distance to the grid (grid.py).
+UNIT_ROUNDOFF = 2.0**-24
 MISS_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
