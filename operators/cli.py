@@ -213,9 +213,10 @@ def _analyze(scene, stdout):
 
 
 def _write_plot(props, out_dir: Path) -> str:
-    from ..ui import plot
+    from ..core import plot
+    from ..settings import figures_from_props
 
-    f = plot.figures_from_props(props)
+    f = figures_from_props(props)
     try:
         return plot.write_png(out_dir / PLOT_PNG, plot.plot_rgba(f, 640, 480))
     except OSError as e:

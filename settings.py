@@ -1,4 +1,7 @@
-"""Scene settings and results: ``scene.hybrid_raycast``.
+"""Scene settings and results: ``scene.hybrid_raycast``, and the running job's status.
+
+The one module both sides share: ``operators/`` write here, ``ui/`` draws from here
+(imports run ui -> settings <- operators -> core).
 
 Scripts read the results directly, e.g.::
 
@@ -32,7 +35,7 @@ from bpy.props import (
     StringProperty,
 )
 
-from ..operators.budget import ray_budget, render_samples
+from .budget import ray_budget, render_samples
 
 #: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
 BREAK_EVEN_NEVER = 3.4028234663852886e38
@@ -44,6 +47,11 @@ DECISION_ITEMS = (
     ("BVH", "BVH", "Build the numpy BVH: it pays for its build within the expected rays"),
     ("EMBREE", "Embree", "Build Embree's BVH (embreex): it pays for its build within the expected rays"),
 )
+
+
+#: what the panel shows while a modal job runs: {"label", "fraction", "text"}; empty when
+#: idle.  Written only by ``operators/jobs.py``'s ``JobOperator``; one job runs at a time.
+RUNNING: dict = {}
 
 
 def _get_expected(self):
@@ -90,6 +98,26 @@ def stale_reason(props) -> str:
         elif value != old:
             diff.append(key.replace("_", " "))
     return f"{', '.join(diff)} changed since the analysis" if diff else ""
+
+
+def figures_from_props(props) -> dict:
+    """What ``core.plot.plot_rgba`` draws, from these properties (None before any analysis)."""
+    if not props.has_results:
+        return None
+    cands = {}
+    if props.bvh_considered:
+        cands["bvh"] = (props.bvh_build_time, props.bvh_per_ray)
+    if props.embree_considered:
+        cands["embree"] = (props.embree_build_time, props.embree_per_ray)
+    return {
+        "grid_per_ray": props.grid_per_ray,
+        "candidates": cands,
+        "expected_rays": props.analyzed_rays,
+        "decision": props.decision,
+        "break_even": None if props.break_even_infinite else props.break_even_rays,
+        "break_even_low": None if props.break_even_low_infinite else props.break_even_low,
+        "break_even_high": None if props.break_even_high_infinite else props.break_even_high,
+    }
 
 
 def _get_stale(self):
