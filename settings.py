@@ -39,7 +39,8 @@ from .budget import ray_budget, render_samples
 
 #: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
 BREAK_EVEN_NEVER = 3.4028234663852886e38
-_RAYS_MAX = 1.0e15
+#: the largest expected ray count the settings store (custom_rays, expected_rays)
+RAYS_MAX = 1.0e15
 
 DECISION_ITEMS = (
     ("NONE", "None", "No analysis yet"),
@@ -55,7 +56,7 @@ RUNNING: dict = {}
 
 
 def _get_expected(self):
-    return min(ray_budget(self.id_data, self)["rays"], _RAYS_MAX)
+    return min(ray_budget(self.id_data, self)["rays"], RAYS_MAX)
 
 
 def _set_expected(self, value):
@@ -147,13 +148,13 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     custom_rays: FloatProperty(
         name="Custom Rays",
         description="Rays you are about to shoot (used when the ray budget is Custom)",
-        default=1.0e6, min=0.0, max=_RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
+        default=1.0e6, min=0.0, max=RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
     )
     expected_rays: FloatProperty(
         name="Expected Rays",
         description="Rays you are about to shoot: decides whether a BVH pays for its build. "
                     "From the render settings or the custom number; setting it switches to Custom",
-        min=0.0, max=_RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
+        min=0.0, max=RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
         get=_get_expected, set=_set_expected,
     )
     path_length: FloatProperty(
@@ -234,7 +235,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         name="Certain", description="The expected rays lie outside the break-even interval, so the choice holds "
                                     "at both ends of the calibration's spread", default=False)
     analyzed_rays: FloatProperty(name="Analyzed Rays", description="Expected rays the analysis decided for",
-                                 min=0.0, max=_RAYS_MAX, precision=0)
+                                 min=0.0, max=RAYS_MAX, precision=0)
     break_even_rays: FloatProperty(
         name="Break-even Rays", description="Rays up to which the already built grid is cheapest "
                                            "(3.4e38 with Break-even Infinite set: the grid always wins)",
