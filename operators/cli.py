@@ -144,6 +144,7 @@ _BLENDER_OPTION_VALUES = {
                      "-x", "--use-extension", "-S", "--scene", "-P", "--python", "--python-text",
                      "--python-expr", "--python-exit-code", "--addons", "--app-template", "--log",
                      "--log-level", "--log-file", "--debug-value", "--gpu-backend", "-setaudio",
+                     "--cycles-device", "--verbose", "--gpu-compilation-subprocesses",
                      "--env-system-datafiles", "--env-system-scripts", "--env-system-extensions",
                      "--env-system-python"), 1),
     "-p": 4, "--window-geometry": 4,
