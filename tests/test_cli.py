@@ -374,6 +374,8 @@ def test_a_missing_or_non_blend_file_before_c_exits_2_with_one_line(fresh, addon
         got = addon.operators.cli.main(["analyze"], stdout=out, stderr=err, blender_argv=argv)
         line = one_line(err.getvalue())
         assert got == 2 and words in line and str(path) in line, line
+    got, out, err = run(addon, "analyze", "--blend", str(text))
+    assert got == 2 and "cannot open" in one_line(err), err
     assert not props().has_results, "nothing may be analysed after a bad file"
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     out, err = io.StringIO(), io.StringIO()
