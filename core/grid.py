@@ -7,11 +7,16 @@
   triangle/box test of Akenine-Moeller, "Fast 3D Triangle-Box Overlap Testing",
   JGT 6(1), 2001; then a counting sort into CSR arrays (``cell_start``, ``cell_tris``).
 - Traversal: Amanatides and Woo, "A Fast Voxel Traversal Algorithm for Ray Tracing",
-  Eurographics 1987, with every live ray of a chunk stepping in lockstep.
+  Eurographics 1987, with every live ray of a chunk stepping in lockstep, plus an
+  empty-space skip over the same cells (a per-cell radius of empty cells around it, the
+  idea of Cohen and Sheffer's "Proximity clouds: an acceleration technique for 3D grid
+  traversal", The Visual Computer, 1994): a ray in an empty cell jumps through that cube
+  in one step.  It stays the paper's uniform grid (Hapala et al. 2011): the plan times
+  this traversal on its K sample rays, so the cost model measures the grid as it runs.
 
 Why the result equals brute force hit for hit (same kernel, same tie rule): the kernel
 reports a hit only where the exact ray passes within its float32 slack (about 2u times
-the origin's distance, u = ``UNIT_ROUNDOFF`` = 2**-24) of the triangle, at a t whose ray point is that close
+the origin's distance, u = ``UNIT_ROUNDOFF``) of the triangle, at a t whose ray point is that close
 to it.  Every cell is enlarged by ``delta`` (far above that slack for origins within a
 few scene sizes) when its references are chosen, and a ray stops in a cell only when its
 best t plus ``mu`` (a bound on the kernel's error in t) is at most the cell's exit
