@@ -9,7 +9,7 @@ plot's preview collection and the ``-c hybrid_raycast`` command-line command.
 import bpy
 
 from . import api, operators, ui  # noqa: F401  (api: reachable as <package>.api)
-from .operators import cli, state
+from .operators import cli, session
 from .ui import plot
 from .ui.properties import HybridRaycastSettings
 
@@ -27,7 +27,7 @@ def register():
     for cls in classes:
         bpy.utils.register_class(cls)
     bpy.types.Scene.hybrid_raycast = bpy.props.PointerProperty(type=HybridRaycastSettings)
-    state.register()
+    session.register()
     plot.register()
     if _cli_handle is None and hasattr(bpy.utils, "register_cli_command"):
         _cli_handle = bpy.utils.register_cli_command(cli.COMMAND, cli.handler)
@@ -39,7 +39,7 @@ def unregister():
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None
     plot.unregister()
-    state.unregister()
+    session.unregister()
     if hasattr(bpy.types.Scene, "hybrid_raycast"):
         del bpy.types.Scene.hybrid_raycast
     for cls in reversed(classes):

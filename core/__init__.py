@@ -12,7 +12,8 @@ from .mesh import TriangleMesh
 from .objio import load_obj
 from .rays import camera_rays, hemisphere_rays, uniform_rays
 from .calibration import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
-from .plan import Plan, plan, trace_online, trace_planned
+from .plan import Plan, plan, ski_rental, trace_online, trace_planned
+from .multihit import all_hits
 from .scenes import calibration_set
 
 __all__ = [
@@ -20,6 +21,7 @@ __all__ = [
     "Accel",
     "Hits",
     "TriangleMesh",
+    "all_hits",
     "build",
     "Calibration",
     "CalibrationError",
@@ -29,6 +31,7 @@ __all__ = [
     "load_or_default",
     "measure_break_even",
     "plan",
+    "ski_rental",
     "trace_online",
     "trace_planned",
     "camera_rays",
