@@ -9,14 +9,16 @@ plot's preview collection and the ``-c hybrid_raycast`` command-line command.
 import bpy
 
 from . import api, operators, ui  # noqa: F401  (api: reachable as <package>.api)
-from .operators import cli, session
-from .ui import plot
+from .operators import cli, scan, session
+from .ui import plot, scan_panel
 from .ui.properties import HybridRaycastSettings
 
 classes = (
     HybridRaycastSettings,
     *operators.classes,
     *ui.classes,
+    *scan.classes,
+    *scan_panel.classes,
 )
 
 _cli_handle = None
@@ -27,6 +29,7 @@ def register():
     for cls in classes:
         bpy.utils.register_class(cls)
     bpy.types.Scene.hybrid_raycast = bpy.props.PointerProperty(type=HybridRaycastSettings)
+    scan.register_properties()
     session.register()
     plot.register()
     if _cli_handle is None and hasattr(bpy.utils, "register_cli_command"):
@@ -40,6 +43,7 @@ def unregister():
         _cli_handle = None
     plot.unregister()
     session.unregister()
+    scan.unregister_properties()
     if hasattr(bpy.types.Scene, "hybrid_raycast"):
         del bpy.types.Scene.hybrid_raycast
     for cls in reversed(classes):

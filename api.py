@@ -408,3 +408,9 @@ def cast_all(origins, directions, *, max_hits: int = 16, tmin=0.0, tmax=np.inf, 
                    instance_index=mesh.instance_index[tri], polygon_index=mesh.polygon_index[tri], points=points,
                    normals=s.triangle_normals[tri], count=np.bincount(ray, minlength=call.m).astype(np.int32),
                    objects=objects, object_names=names, instance_matrices=inst.matrices, structure=kind)
+
+
+# sensor scans (issue 13): api.scan(sensor_object, *, frame=None, space='WORLD'), in operators/scan.py
+from .operators.scan import ScanResult, scan  # noqa: E402
+
+__all__ += ["ScanResult", "scan"]

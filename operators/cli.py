@@ -12,6 +12,8 @@ Commands
                analysis, so the JSON holds both; ``--output`` gets the pass PNGs
     calibrate  measure this machine's constants (``--scale``) and save them
     report     the last analysis stored in the .blend (re-analyzed when missing or stale)
+    scan       sensor scans from ``--sensor NAME`` over ``--frames A-B`` into ``--output DIR``,
+               one ``--format ply|las|npz`` file per frame (``operators/scan.py``)
 
 Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-`` for
 stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
@@ -48,7 +50,7 @@ from .jobs import BadInput, HRCError, Job, Unwritable, run_sync
 from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
-COMMANDS = ("analyze", "trace", "calibrate", "report")
+COMMANDS = ("analyze", "trace", "calibrate", "report", "scan")
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_ARGS, EXIT_NO_GEOMETRY, EXIT_UNWRITABLE, EXIT_INVALID_GEOMETRY, EXIT_NOTHING_TO_TRACE = range(7)
 PLOT_PNG = "hybrid_raycast_plot.png"
 JSON_NAME = "hybrid_raycast_{command}.json"
@@ -101,6 +103,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
     p.add_argument("--calibration", help="the calibration file to read and write")
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="quick", help="calibrate: how much to measure")
+    p.add_argument("--sensor", help="scan: the object to scan from (its hybrid_raycast_sensor settings)")
+    p.add_argument("--frames", help="scan: START-END or one frame (default: the scene's range)")
+    p.add_argument("--format", choices=("ply", "las", "npz"), help="scan: file format (default: the sensor's)")
+    p.add_argument("--space", choices=("world", "sensor"), help="scan: coordinates of the points (default: the sensor's)")
     return p
 
 
@@ -232,6 +238,10 @@ def _run(args, stdout) -> int:
         _say(stdout, apply_calibration(None, result))
         cal = result["calibration"]
         doc = {"command": "calibrate", "path": str(result["path"]), "calibration": cal.to_dict()}
+    elif args.command == "scan":
+        from .scan import scan_command
+
+        doc = scan_command(_scene(args), args, out_dir, stdout)
     else:
         scene = _scene(args)
         props = scene.hybrid_raycast
