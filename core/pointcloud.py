@@ -160,7 +160,7 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
     q = np.rint((pts - lo) / LAS_SCALE).astype(np.int64)
     rec = np.zeros(n, dtype)
     rec["X"], rec["Y"], rec["Z"] = q.T
-    rec["intensity"] = np.rint(np.clip(f["intensity"], 0, 1) * 65535).astype(np.uint16)
+    rec["intensity"] = np.rint(np.clip(f["intensity"].astype(np.float64), 0, 1) * 65535).astype(np.uint16)
     rec["returns"] = 0x11  # return 1 of 1
     if classification is None:
         rec["classification"] = 1
