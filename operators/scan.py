@@ -380,6 +380,7 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
         for i, frame in enumerate(range(start, end + 1)):
             job.progress(i / count, f"frame {frame} ({i + 1} of {count})")
             yield job.fraction, job.text
+            job.check()
             scene.frame_set(frame)
             dg = session.evaluated(scene, view_layer)
             result = scan_depsgraph(ob, dg, space, model)
