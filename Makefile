@@ -11,7 +11,7 @@ WHEELS := $(shell sed -n 's|^ *"\./\(wheels/[^"]*\.whl\)",*|\1|p' blender_manife
 VERSION := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 ZIP    := dist/hybrid_raycast-$(VERSION).zip
 
-.PHONY: demo test test-fast real-blender venv wheels validate extension bench-extract bench-trace report clean
+.PHONY: demo test test-fast real-blender venv wheels validate extension bench-extract bench-trace bench-scan report clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -57,6 +57,10 @@ bench-extract: $(VENV)/.stamp
 
 bench-trace: $(VENV)/.stamp
 	$(PY) scripts/bench_trace.py
+
+## Sensor scans: 64 x 2,048 rays per frame over 100 frames of an animated scene vs a scene.ray_cast loop (timing lock held).
+bench-scan: $(VENV)/.stamp
+	flock /tmp/hrc-bench.lock $(PY) scripts/bench_scan.py
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes
 ## (about 8 minutes; REPORT_ARGS=--quick for a 5-second smoke run).

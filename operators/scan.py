@@ -218,8 +218,8 @@ def _frame_time(scene, frame):
     return (frame - scene.frame_start) / fps
 
 
-def scan_depsgraph(ob, depsgraph, space="WORLD", model=None) -> ScanResult:
-    """One scan of the depsgraph's scene as it is evaluated now."""
+def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -> ScanResult:
+    """One scan of the depsgraph's scene as it is evaluated now; ``structure`` as ``api.cast``."""
     from .. import api
 
     if space not in SPACES:
@@ -230,7 +230,7 @@ def scan_depsgraph(ob, depsgraph, space="WORLD", model=None) -> ScanResult:
     origin, rot = pose[:3, 3], pose[:3, :3]
     pat = model.pattern()
     d = pat.directions @ rot.T
-    r = api.cast(origin, d, depsgraph=depsgraph, tmax=model.range_max)
+    r = api.cast(origin, d, depsgraph=depsgraph, tmax=model.range_max, structure=structure)
     frame = scene.frame_current
     with np.errstate(invalid="ignore"):
         cos = np.abs(np.einsum("ij,ij->i", r.normals.astype(np.float64), d))
@@ -255,13 +255,14 @@ def _whole(x, name):
     return int(x)
 
 
-def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None) -> ScanResult:
+def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None, structure="auto") -> ScanResult:
     """Scan the evaluated scene from ``sensor_object`` with its ``hybrid_raycast_sensor``
     settings; the points as arrays (``ScanResult``).
 
     frame: scan at this frame (the scene goes back to its current frame afterwards);
     default the current one.  space: 'WORLD' or 'SENSOR' (the object's frame, no scale).
     depsgraph: an evaluated depsgraph (default the context's).
+    structure: 'auto' (the session's plan), 'grid', 'bvh' or 'embree', as ``api.cast``.
     Raises TypeError/ValueError naming the argument or the setting for bad input.
     """
     if not isinstance(sensor_object, bpy.types.Object):
@@ -274,13 +275,13 @@ def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None) -> ScanRes
     model = sensor_model(sensor_object, scene)
     if frame is None:
         dg = depsgraph if depsgraph is not None else bpy.context.evaluated_depsgraph_get()
-        return scan_depsgraph(sensor_object, dg, space, model)
+        return scan_depsgraph(sensor_object, dg, space, model, structure)
     frame = _whole(frame, "frame")
     old = (scene.frame_current, scene.frame_subframe)
     scene.frame_set(frame)
     try:
         dg = depsgraph if depsgraph is not None else session.evaluated(scene)
-        return scan_depsgraph(sensor_object, dg, space, model)
+        return scan_depsgraph(sensor_object, dg, space, model, structure)
     finally:
         if (scene.frame_current, scene.frame_subframe) != old:
             scene.frame_set(old[0], subframe=old[1])
@@ -359,7 +360,11 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     """Generator: scan ``frames`` (start, end) from ``ob`` into ``directory``, one file per
     frame; every argument is checked before the first frame.  ``written``: a list the
     finished files are appended to as they are renamed into place.  The scene returns to
-    its current frame at the end, on an error and when the job is closed (Esc)."""
+    its current frame at the end, on an error and when the job is closed (Esc).
+
+    The first frame plans (``api.cast``'s 'auto'); later frames use the structure it
+    chose: a moving scene is extracted again every frame, and planning again would time
+    the grid on sample rays each frame for the same answer."""
     fmt = str(fmt).lower()
     if fmt not in pointcloud.FORMATS:
         raise BadInput(f"bad arguments: format must be one of {', '.join(pointcloud.FORMATS)}, got {fmt!r}")
@@ -376,6 +381,7 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     old = (scene.frame_current, scene.frame_subframe)
     count = end - start + 1
     rays = points = 0
+    structure = "auto"
     try:
         for i, frame in enumerate(range(start, end + 1)):
             job.progress(i / count, f"frame {frame} ({i + 1} of {count})")
@@ -383,7 +389,8 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
             job.check()
             scene.frame_set(frame)
             dg = session.evaluated(scene, view_layer)
-            result = scan_depsgraph(ob, dg, space, model)
+            result = scan_depsgraph(ob, dg, space, model, structure)
+            structure = result.structure
             try:
                 written.append(write_scan(result, folder / file_name(ob, frame, fmt), fmt))
             except OSError as e:
@@ -395,7 +402,8 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     finally:
         if (scene.frame_current, scene.frame_subframe) != old:
             scene.frame_set(old[0], subframe=old[1])
-    return {"files": list(written), "frames": count, "rays": rays, "points": points, "folder": folder}
+    return {"files": list(written), "frames": count, "rays": rays, "points": points, "folder": folder,
+            "structure": structure}
 
 
 # -- the operator -------------------------------------------------------------------------------
