@@ -280,3 +280,28 @@ def test_cli_scan_bad_sensor_settings_exit_2_and_unwritable_output_exits_4(fresh
     blocker.write_text("x")
     code, _o, err = run_cli(addon, "scan", "--sensor", "Lidar", "--frames", "1", "--output", str(blocker / "sub"))
     assert code == 4 and "unwritable" in err and len(err.strip().splitlines()) == 1
+
+
+def test_readme_sensor_scan_example_runs_as_written(fresh, addon, monkeypatch):
+    import re
+    import sys
+    import types
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    start = text.index("## Sensor scans")
+    blocks = re.findall(r"```python\n(.*?)```", text[start:text.index("\n## ", start + 3)], flags=re.S)
+    assert blocks and all("api.scan" in b for b in blocks)
+    for name in ("bl_ext", "bl_ext.user_default"):
+        mod = types.ModuleType(name)
+        mod.__path__ = []
+        monkeypatch.setitem(sys.modules, name, mod)
+    monkeypatch.setitem(sys.modules, "bl_ext.user_default.hybrid_raycast", addon)
+    scene, _sensor = scene_with_sensor()
+    scene.frame_set(2)
+    ns = {}
+    for block in blocks:
+        exec(compile(block, "README.md sensor scan block", "exec"), ns)
+    r = ns["r"]
+    assert r.frame == 12 and scene.frame_current == 2 and len(r) > 1000
+    assert np.allclose(np.linalg.norm(r.points, axis=1), r.range, atol=1e-6), "SENSOR space as the README says"
