@@ -138,18 +138,19 @@ def _vectors(x, name) -> np.ndarray:
 
 
 def _check_finite(a, name, zero=False):
-    with np.errstate(over="ignore", invalid="ignore"):
-        for s in range(0, len(a), CHUNK):
-            c = a[s:s + CHUNK].astype(np.float32)
-            bad = ~np.isfinite(c).all(axis=1)
-            if bad.any():
-                w = np.flatnonzero(bad) + s
-                raise ValueError(f"{name}: {w.size}+ rays are NaN or infinite (or overflow float32), first at ray {w[:5].tolist()}")
-            if zero:
-                z = ~(c != 0).any(axis=1)
-                if z.any():
-                    w = np.flatnonzero(z) + s
-                    raise ValueError(f"{name}: {w.size}+ rays have a zero-length direction, first at ray {w[:5].tolist()}")
+    """Checked as the rays will be traced: rounded to float32, chunk by chunk (no copy of
+    the whole input)."""
+    for s in range(0, len(a), CHUNK):
+        c = a[s:s + CHUNK]
+        if c.dtype != np.float32:
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow to inf is reported below
+                c = c.astype(np.float32)
+        if not np.isfinite(c).all():
+            w = np.flatnonzero(~np.isfinite(c).all(axis=1)) + s
+            raise ValueError(f"{name}: rays with NaN or infinite values (or overflowing float32), first at ray {w[:5].tolist()}")
+        if zero and not c.any(axis=1).all():
+            w = np.flatnonzero(~c.any(axis=1)) + s
+            raise ValueError(f"{name}: rays with a zero-length direction, first at ray {w[:5].tolist()}")
 
 
 def _bound(x, m, name):
@@ -281,15 +282,6 @@ class _Call:
                                   grid_config=self.grid_config)
 
 
-def _tables(s):
-    inst = s.mesh.instances
-    objects = np.empty(len(inst.objects), object)
-    objects[:] = inst.objects
-    names = np.empty(len(inst.objects), object)
-    names[:] = [ob.name if ob is not None else "" for ob in inst.objects]
-    return objects, names, inst
-
-
 def _interpolate(corners, tri, u, v):
     """Barycentric interpolation of per-corner data (T, 3, k) at hits."""
     c = corners[tri].astype(np.float64)
@@ -321,8 +313,8 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
                  selected_only=selected_only, samples=samples, structure=structure, attributes=attributes)
     s, m = call.session, call.m
-    objects, names, inst = _tables(s)
-    mesh = s.mesh
+    objects, names = s.tables()
+    inst = s.mesh.instances
     t = np.empty(m, np.float32)
     tri = np.empty(m, np.int32)
     u = np.empty(m, np.float32)
@@ -335,32 +327,31 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     smooth_n = np.empty((m, 3), np.float32) if smooth else None
     uvs = np.empty((m, 2), np.float32) if uv else None
     kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
-    tri_normals = s.triangle_normals
+    tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
     for a, b in call.chunks(progress):
         rays = call.rays(a, b)
         h, kind = call.query(rays)
-        hit = h.triangle >= 0
-        k = h.triangle[hit]
-        t[a:b], tri[a:b], u[a:b], v[a:b] = h.t, h.triangle, h.u, h.v
-        tt = np.where(hit, h.t, np.nan).astype(np.float64)
-        np.add(rays[0], tt[:, None] * rays[1], out=points[a:b], dtype=np.float64)
-        nrm = normals[a:b]
-        nrm[~hit] = np.nan
-        nrm[hit] = tri_normals[k]
-        ins_k = mesh.instance_index[k]
-        for out, value in ((obj, inst.instance_object[ins_k]), (ins, ins_k), (poly, mesh.polygon_index[k])):
-            part = out[a:b]
-            part[~hit] = -1
-            part[hit] = value
+        k = h.triangle  # -1 on a miss picks the tables' miss row
+        t[a:b], tri[a:b], u[a:b], v[a:b] = h.t, k, h.u, h.v
+        np.take(tri_obj, k, out=obj[a:b])
+        np.take(tri_ins, k, out=ins[a:b])
+        np.take(tri_poly, k, out=poly[a:b])
+        np.take(tri_normals, k, axis=0, out=normals[a:b])
+        tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
+        np.multiply(tt[:, None], rays[1], out=points[a:b])
+        points[a:b] += rays[0]
+        if smooth or uv:
+            hit = k >= 0
+            kh, uh, vh = k[hit], h.u[hit], h.v[hit]
         if smooth:
-            sn = _interpolate(inst.corner_normals, k, h.u[hit], h.v[hit])
+            sn = _interpolate(inst.corner_normals, kh, uh, vh)
             with np.errstate(invalid="ignore", divide="ignore"):
                 sn /= np.linalg.norm(sn, axis=1, keepdims=True)
             smooth_n[a:b][~hit] = np.nan
             smooth_n[a:b][hit] = sn
         if uv:
             uvs[a:b][~hit] = np.nan
-            uvs[a:b][hit] = _interpolate(inst.corner_uvs, k, h.u[hit], h.v[hit])
+            uvs[a:b][hit] = _interpolate(inst.corner_uvs, kh, uh, vh)
     return CastResult(t=t, hit=tri >= 0, points=points, normals=normals, objects=objects, object_names=names,
                       object_index=obj, instance_index=ins, instance_matrices=inst.matrices, polygon_index=poly,
                       triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs, plan=s.plan)
@@ -401,8 +392,8 @@ def cast_all(origins, directions, *, max_hits: int = 16, tmin=0.0, tmax=np.inf, 
     else:
         ray, t, tri, o, d = (np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32),
                              np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-    objects, names, inst = _tables(s)
-    mesh = s.mesh
+    objects, names = s.tables()
+    inst, mesh = s.mesh.instances, s.mesh
     points = o.astype(np.float64) + t.astype(np.float64)[:, None] * d.astype(np.float64)
     return AllHits(ray=ray, t=t, triangle=tri, object_index=inst.instance_object[mesh.instance_index[tri]],
                    instance_index=mesh.instance_index[tri], polygon_index=mesh.polygon_index[tri], points=points,

@@ -49,6 +49,9 @@ SESSIONS: dict[tuple, "Session"] = {}
 #: scene pointer -> (view layer pointer, selected_only, body) of the analysis shown in the sidebar
 ANALYSED: dict[int, tuple] = {}
 
+# looked up once: an attribute of bpy.types costs tens of microseconds per access
+_DEPSGRAPH = bpy.types.Depsgraph
+_OBJECT = bpy.types.Object
 _NOT_GEOMETRY = frozenset({"CAMERA", "LIGHT", "LIGHT_PROBE", "LIGHTPROBE", "SPEAKER", "ARMATURE"})
 _adopting = False
 
@@ -71,9 +74,8 @@ def fingerprint(depsgraph, selected_only: bool = False) -> tuple[tuple, tuple]:
     head = (scene.as_pointer(), vl.as_pointer(), depsgraph.mode, scene.frame_current,
             float(scene.frame_subframe), bool(selected_only))
     body = [_layer_flags(vl)]
-    obj_type = bpy.types.Object
     for idb in depsgraph.ids:
-        if not isinstance(idb, obj_type) or idb.type in _NOT_GEOMETRY:
+        if not isinstance(idb, _OBJECT) or idb.type in _NOT_GEOMETRY:
             continue
         orig = idb.original
         data = idb.data
@@ -90,7 +92,7 @@ def fingerprint(depsgraph, selected_only: bool = False) -> tuple[tuple, tuple]:
 
 
 def check_depsgraph(depsgraph, name="depsgraph"):
-    if not isinstance(depsgraph, bpy.types.Depsgraph):
+    if not isinstance(depsgraph, _DEPSGRAPH):
         raise TypeError(f"{name} must be a bpy.types.Depsgraph (e.g. context.evaluated_depsgraph_get()), "
                         f"got {type(depsgraph).__name__}")
     return depsgraph
@@ -159,6 +161,8 @@ class Session:
     kinds: tuple = ()
     #: per triangle, the world-space unit geometric normal (float32), made on first use
     _normals: object = None
+    _per_triangle: object = None
+    _tables: object = None
 
     @property
     def triangle_normals(self) -> np.ndarray:
@@ -171,6 +175,30 @@ class Session:
             with np.errstate(invalid="ignore", divide="ignore"):
                 self._normals = (n / length).astype(np.float32)
         return self._normals
+
+    def per_triangle(self):
+        """(object index, instance index, polygon index, unit normal) per triangle, each
+        with one more row for a miss (-1, -1, -1, NaN) so that a miss's triangle -1 picks it."""
+        if self._per_triangle is None:
+            mesh, inst = self.mesh, self.mesh.instances
+            tail = np.array([-1], np.int32)
+            self._per_triangle = (
+                np.concatenate([inst.instance_object[mesh.instance_index], tail]),
+                np.concatenate([mesh.instance_index, tail]),
+                np.concatenate([mesh.polygon_index, tail]),
+                np.concatenate([self.triangle_normals, np.full((1, 3), np.nan, np.float32)]),
+            )
+        return self._per_triangle
+
+    def tables(self):
+        """(objects, their names) as object arrays, so ``objects[object_index[hit]]`` works."""
+        if self._tables is None:
+            obs = self.mesh.instances.objects
+            objects, names = np.empty(len(obs), object), np.empty(len(obs), object)
+            objects[:] = obs
+            names[:] = [ob.name if ob is not None else "" for ob in obs]
+            self._tables = objects, names
+        return self._tables
 
     @property
     def fingerprint(self):

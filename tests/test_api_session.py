@@ -240,3 +240,55 @@ def test_bad_input_names_the_argument_and_changes_nothing(fresh, addon, call, ki
     for k in before:
         assert before[k][0] is after[k][0] and before[k][1:3] == after[k][1:3] and before[k][4:] == after[k][4:]
         assert before[k][3] == after[k][3]
+
+
+def test_big_casts_run_in_chunks_with_progress_and_stop_on_interrupt(fresh, addon, monkeypatch):
+    build()
+    api = addon.api
+    o, d = rays()
+    whole = api.cast(o, d, structure="bvh")  # one structure: the same answers bit for bit
+    monkeypatch.setattr(api, "CHUNK", 64)
+    seen = []
+    chunked = api.cast(o, d, structure="bvh", progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(min(RAYS, k), RAYS) for k in range(64, RAYS + 64, 64)], seen
+    for name in ("t", "triangle", "object_index", "instance_index", "polygon_index", "hit"):
+        assert np.array_equal(getattr(whole, name), getattr(chunked, name)), f"{name} differs when chunked"
+    assert np.allclose(whole.points, chunked.points, equal_nan=True)
+    assert np.array_equal(api.occluded(o, d, structure="bvh"), whole.hit), "occluded is not 'a nearest hit exists'"
+    # nothing lies nearer than the nearest hit; up to just past it the hit itself blocks
+    half = np.where(whole.hit, whole.t * 0.5, 1.0)
+    assert not api.occluded(o, d, tmax=half, structure="bvh").any(), "an occluder nearer than the nearest hit"
+    upto = np.where(whole.hit, whole.t * (1 + 1e-5), 1.0)  # t is rounded to float32
+    assert np.array_equal(api.occluded(o, d, tmax=upto, structure="bvh"), whole.hit)
+
+    def stop(done, total):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        api.cast(o, d, progress=stop)
+
+
+def test_cast_all_lists_every_surface_along_the_ray(fresh, addon):
+    from mathutils import Vector
+
+    build()
+    api = addon.api
+    o, d = rays()
+    r = api.cast_all(o, d, max_hits=16)
+    first = api.cast(o, d)
+    assert np.all(np.diff(r.ray) >= 0)
+    starts = np.flatnonzero(np.r_[True, r.ray[1:] != r.ray[:-1]])
+    assert np.array_equal(r.ray[starts], np.flatnonzero(first.hit)), "rays with hits differ from cast"
+    assert np.allclose(r.t[starts], first.t[first.hit], rtol=1e-5), "the first hit of each ray is cast's"
+    # the second hit equals scene.ray_cast restarted just past the first
+    dg = bpy.context.evaluated_depsgraph_get()
+    scene = bpy.context.scene
+    two = starts[np.flatnonzero(r.count[r.ray[starts]] >= 2)]
+    assert two.size > 20
+    for k in two[:40]:
+        i = r.ray[k]
+        dn = d[i] / np.linalg.norm(d[i])
+        p = r.points[k] + 1e-4 * dn
+        ok, loc, n, face, ob, mat = scene.ray_cast(dg, Vector(p), Vector(dn))
+        assert ok and np.allclose(loc[:], r.points[k + 1], atol=2e-4), (i, loc[:], r.points[k + 1])
+        assert np.allclose(n[:], r.normals[k + 1], atol=1e-4) and r.objects[r.object_index[k + 1]] == ob.original
