@@ -118,6 +118,8 @@ def write_npz(path, fields: dict, object_names) -> Path:
 # -- LAS 1.4 --------------------------------------------------------------------------------
 
 _HEADER_SIZE = 375
+#: global encoding bit 4: the CRS, if any, is WKT; LAS 1.4 requires it for point formats 6-10
+_WKT_BIT = 16
 _VLR_HEADER = struct.Struct("<H16sHH32s")
 #: Extra Bytes data types (LAS 1.4 table 24)
 _EB_TYPE = {"u2": 3, "i4": 6, "f4": 9, "f8": 10}
@@ -183,7 +185,7 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
     today = datetime.date.today()
     header = struct.pack(
         "<4sHH16sBB32s32sHHHIIBHI5I3d3d6dQQIQ15Q",
-        b"LASF", 0, 0, b"", 1, 4, b"hybrid_raycast scan", b"hybrid_raycast", today.timetuple().tm_yday, today.year,
+        b"LASF", 0, _WKT_BIT, b"", 1, 4, b"hybrid_raycast scan", b"hybrid_raycast", today.timetuple().tm_yday, today.year,
         _HEADER_SIZE, _HEADER_SIZE + len(vlrs), 2, 6, dtype.itemsize, 0, 0, 0, 0, 0, 0,
         LAS_SCALE, LAS_SCALE, LAS_SCALE, *lo,
         maxs[0], mins[0], maxs[1], mins[1], maxs[2], mins[2],

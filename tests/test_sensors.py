@@ -174,6 +174,7 @@ def test_las_reads_back_with_laspy(tmp_path):
     las = laspy.read(str(tmp_path / "s.las"))
     assert (las.header.version.major, las.header.version.minor) == (1, 4) and las.header.point_format.id == 6
     assert las.header.point_count == len(f["points"])
+    assert las.header.global_encoding.wkt, "LAS 1.4 point format 6 needs the WKT bit"
     xyz = np.c_[las.x, las.y, las.z]
     assert np.abs(xyz - f["points"]).max() <= pointcloud.LAS_SCALE / 2 + 1e-9, "coordinates within half a unit"
     assert np.array_equal(np.asarray(las.classification), cls)
