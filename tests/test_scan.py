@@ -305,3 +305,42 @@ def test_readme_sensor_scan_example_runs_as_written(fresh, addon, monkeypatch):
     r = ns["r"]
     assert r.frame == 12 and scene.frame_current == 2 and len(r) > 1000
     assert np.allclose(np.linalg.norm(r.points, axis=1), r.range, atol=1e-6), "SENSOR space as the README says"
+
+
+class _Layout:
+    """A stand-in for bpy.types.UILayout that checks every property and operator drawn."""
+
+    def __init__(self, seen):
+        self.seen = seen
+
+    def __getattr__(self, name):
+        return lambda *a, **k: self
+
+    def __setattr__(self, name, value):
+        object.__setattr__(self, name, value)
+
+    def prop(self, data, name, **_k):
+        assert name in data.bl_rna.properties, f"panel draws a missing property {name!r}"
+        self.seen.add(name)
+        return self
+
+    def operator(self, idname, **_k):
+        cat, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, cat), op), f"panel calls a missing operator {idname}"
+        self.seen.add(idname)
+        return self
+
+
+@pytest.mark.parametrize("kind", ["ROTATING", "AREA", "DEPTH"])
+def test_scan_panel_draws_existing_settings_and_the_scan_button(fresh, addon, kind):
+    import types
+
+    _scene, sensor = scene_with_sensor(animated=False)
+    sensor.hybrid_raycast_sensor.kind = kind
+    sensor.hybrid_raycast_sensor.use_scene_range = False
+    seen = set()
+    panel = types.SimpleNamespace(layout=_Layout(seen))
+    ctx = types.SimpleNamespace(active_object=sensor)
+    addon.ui.scan_panel.VIEW3D_PT_hybrid_raycast_scan.draw(panel, ctx)
+    assert "hybrid_raycast.scan" in seen and "range_max" in seen and "frame_end" in seen
+    assert {"ROTATING": "channels", "AREA": "h_fov", "DEPTH": "width"}[kind] in seen
