@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 
 SCENES = ROOT.parent / "shared" / "scenes"
 STATIC = (("stanford-bunny", (8.0, 4.0)), ("homer", (-9.0, 6.0)), ("teapot", (5.0, -9.0)), ("rocker-arm", (-7.0, -7.0)))
-MOVING = (("beetle-alt", (-15.0, 3.0), (15.0, 3.0)), ("cow", (10.0, -14.0), (-10.0, -2.0)), ("spot", (-3.0, 14.0), (3.0, -14.0)))
+MOVING = (("beetle-alt", (-15.0, 3.0), (15.0, 3.0)), ("cow", (10.0, -14.0), (-10.0, -2.0)), ("spot", (-3.0, 14.0), (9.0, -12.0)))
 
 
 def mesh_object(pkg, name, size=3.0):
