@@ -292,3 +292,27 @@ def test_cast_all_lists_every_surface_along_the_ray(fresh, addon):
         ok, loc, n, face, ob, mat = scene.ray_cast(dg, Vector(p), Vector(dn))
         assert ok and np.allclose(loc[:], r.points[k + 1], atol=2e-4), (i, loc[:], r.points[k + 1])
         assert np.allclose(n[:], r.normals[k + 1], atol=1e-4) and r.objects[r.object_index[k + 1]] == ob.original
+
+
+def test_the_stale_flag_comes_from_the_same_fingerprint(fresh, addon):
+    cube, ball, col = build()
+    scene = bpy.context.scene
+    p = scene.hybrid_raycast
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    assert not p.stale, p.stale_reason
+    scene.frame_set(5)  # nothing is animated: the geometry is the same
+    assert not p.stale, f"a frame change that moves nothing made the results stale: {p.stale_reason}"
+    lc = bpy.context.view_layer.layer_collection.children["Col"]
+    lc.hide_viewport = True
+    bpy.context.evaluated_depsgraph_get()
+    assert p.stale, "hiding a collection with its eye icon changes what is extracted"
+    lc.hide_viewport = False
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    cube.keyframe_insert("location", frame=1)
+    cube.location.z += 1.0
+    cube.keyframe_insert("location", frame=10)
+    scene.frame_set(1)
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    assert not p.stale, p.stale_reason
+    scene.frame_set(10)
+    assert p.stale, "a frame change that moves the cube must make the results stale"
