@@ -316,3 +316,33 @@ def test_the_stale_flag_comes_from_the_same_fingerprint(fresh, addon):
     assert not p.stale, p.stale_reason
     scene.frame_set(10)
     assert p.stale, "a frame change that moves the cube must make the results stale"
+
+
+def test_a_session_plans_once_and_leaves_the_grid_by_the_online_rule(fresh, addon):
+    """Small casts: one plan, then the grid until the rays of all casts pay for a build."""
+    build()
+    api, core = addon.api, addon.core
+    session = addon.operators.session
+    o, d = rays()
+    first = api.cast(o, d)
+    s = session.get(bpy.context.evaluated_depsgraph_get())
+    assert first.plan is s.plan and first.structure == "grid", "a 300-ray cast keeps the grid it planned with"
+    kinds = []
+    for i in range(40):
+        r = api.cast(o, d)
+        assert r.plan is first.plan, "a later cast planned again"
+        kinds.append(r.structure)
+        if r.structure != "grid":
+            break
+    assert kinds[-1] in ("bvh", "embree"), f"never left the grid in 40 casts of {RAYS} rays: {kinds}"
+    switched_at = len(kinds)
+    # the rule that switched: the grid's time over all casts reached the estimate (or the break-even)
+    est = s.calibration.estimate(kinds[-1], s.mesh.triangle_count)
+    assert s.grid_rays == RAYS * switched_at
+    assert (core.ski_rental(s.grid_time, s.grid_rays, est) == "switch"
+            or s.grid_rays + RAYS > s.plan.break_even), (s.grid_time, est.build, s.grid_rays, s.plan.break_even)
+    ref = core.build(s.mesh, "brute").trace(o, d)
+    for kind in ("grid", "bvh"):
+        forced = api.cast(o, d, structure=kind)
+        assert forced.structure == kind
+        assert np.array_equal(forced.hit, ref.hit) and np.allclose(forced.t[ref.hit], ref.t[ref.hit], rtol=1e-6)
