@@ -18,8 +18,9 @@ import bpy
 import numpy as np
 
 from .. import core
+from ..budget import ray_budget
+from ..settings import BREAK_EVEN_NEVER as NEVER
 from . import session
-from .budget import ray_budget
 from .calibrate import load_calibration
 from .jobs import BadInput, Job, JobOperator
 from .session import evaluated as evaluated_depsgraph
@@ -27,7 +28,6 @@ from .session import extract  # noqa: F401  (operators.analyze.extract: the extr
 from .summary import store_summary
 
 RECORD_FORMAT = 1
-NEVER = 3.4028234663852886e38  # ui.properties.BREAK_EVEN_NEVER (float32's largest value)
 
 
 def candidate_kinds(props) -> tuple[tuple[str, ...], list[str]]:
@@ -138,7 +138,7 @@ def results_json(props) -> dict:
 # -- the job -------------------------------------------------------------------------------
 
 def settings_of(props) -> dict:
-    from ..ui.properties import current_settings
+    from ..settings import current_settings
 
     return current_settings(props)
 

@@ -324,14 +324,6 @@ def _add_attributes(s: Session, depsgraph, selected_only, attributes):
     s.attributes = frozenset(attributes)
 
 
-def peek(depsgraph, selected_only=False) -> Session | None:
-    """The stored session of this scene/view layer if its fingerprint is current, else None."""
-    s = SESSIONS.get(session_key(depsgraph, selected_only))
-    if s is not None and s.fingerprint == fingerprint(depsgraph, selected_only):
-        return s
-    return None
-
-
 def evaluated(scene=None, view_layer=None):
     """The evaluated depsgraph of ``scene`` and ``view_layer`` (default: the context's)."""
     ctx = bpy.context

@@ -5,7 +5,7 @@ object-id images of ``passes``) and 'AO' (an ambient-occlusion bake of the activ
 into a colour attribute).  The ray count of a trace is known, so the trace decides for
 *its own* rays: ``core.plan`` with the workload's ray count, timing K of the workload's
 own rays through the grid (the paper's representative rays).  The triangles, the grid
-and every structure built are cached while the scene is unchanged (``state``), so a
+and every structure built are kept in the session while its fingerprint is unchanged (``session``), so a
 second trace, or one after Analyze, extracts and builds nothing it has already built.
 """
 
@@ -18,7 +18,8 @@ import numpy as np
 
 from .. import core
 from . import passes, session
-from .analyze import candidate_kinds, evaluated_depsgraph
+from .analyze import candidate_kinds
+from .session import evaluated as evaluated_depsgraph
 from .calibrate import load_calibration
 from .jobs import BadInput, Job, JobOperator
 

@@ -292,3 +292,57 @@ def test_cast_all_lists_every_surface_along_the_ray(fresh, addon):
         ok, loc, n, face, ob, mat = scene.ray_cast(dg, Vector(p), Vector(dn))
         assert ok and np.allclose(loc[:], r.points[k + 1], atol=2e-4), (i, loc[:], r.points[k + 1])
         assert np.allclose(n[:], r.normals[k + 1], atol=1e-4) and r.objects[r.object_index[k + 1]] == ob.original
+
+
+def test_the_stale_flag_comes_from_the_same_fingerprint(fresh, addon):
+    cube, ball, col = build()
+    scene = bpy.context.scene
+    p = scene.hybrid_raycast
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    assert not p.stale, p.stale_reason
+    scene.frame_set(5)  # nothing is animated: the geometry is the same
+    assert not p.stale, f"a frame change that moves nothing made the results stale: {p.stale_reason}"
+    lc = bpy.context.view_layer.layer_collection.children["Col"]
+    lc.hide_viewport = True
+    bpy.context.evaluated_depsgraph_get()
+    assert p.stale, "hiding a collection with its eye icon changes what is extracted"
+    lc.hide_viewport = False
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    cube.keyframe_insert("location", frame=1)
+    cube.location.z += 1.0
+    cube.keyframe_insert("location", frame=10)
+    scene.frame_set(1)
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    assert not p.stale, p.stale_reason
+    scene.frame_set(10)
+    assert p.stale, "a frame change that moves the cube must make the results stale"
+
+
+def test_a_session_plans_once_and_leaves_the_grid_by_the_online_rule(fresh, addon):
+    """Small casts: one plan, then the grid until the rays of all casts pay for a build."""
+    build()
+    api, core = addon.api, addon.core
+    session = addon.operators.session
+    o, d = rays()
+    first = api.cast(o, d)
+    s = session.get(bpy.context.evaluated_depsgraph_get())
+    assert first.plan is s.plan and first.structure == "grid", "a 300-ray cast keeps the grid it planned with"
+    kinds = []
+    for i in range(40):
+        r = api.cast(o, d)
+        assert r.plan is first.plan, "a later cast planned again"
+        kinds.append(r.structure)
+        if r.structure != "grid":
+            break
+    assert kinds[-1] in ("bvh", "embree"), f"never left the grid in 40 casts of {RAYS} rays: {kinds}"
+    switched_at = len(kinds)
+    # the rule that switched: the grid's time over all casts reached the estimate (or the break-even)
+    est = s.calibration.estimate(kinds[-1], s.mesh.triangle_count)
+    assert s.grid_rays == RAYS * switched_at
+    assert (core.ski_rental(s.grid_time, s.grid_rays, est) == "switch"
+            or s.grid_rays + RAYS > s.plan.break_even), (s.grid_time, est.build, s.grid_rays, s.plan.break_even)
+    ref = core.build(s.mesh, "brute").trace(o, d)
+    for kind in ("grid", "bvh"):
+        forced = api.cast(o, d, structure=kind)
+        assert forced.structure == kind
+        assert np.array_equal(forced.hit, ref.hit) and np.allclose(forced.t[ref.hit], ref.t[ref.hit], rtol=1e-6)
