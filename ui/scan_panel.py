@@ -6,6 +6,8 @@ Draws ``object.hybrid_raycast_sensor`` (``operators/scan.py``) and calls
 
 import bpy
 
+from .. import settings
+
 
 class VIEW3D_PT_hybrid_raycast_scan(bpy.types.Panel):
     bl_label = "Scan"
@@ -62,6 +64,15 @@ class VIEW3D_PT_hybrid_raycast_scan(bpy.types.Panel):
         if not s.use_scene_range:
             col.prop(s, "frame_start")
             col.prop(s, "frame_end")
+        running = settings.RUNNING
+        if running and running.get("label") == "Hybrid RT scan":
+            box = layout.box()
+            text = running.get("text", "")
+            if hasattr(box, "progress"):
+                box.progress(factor=float(running.get("fraction", 0.0)), type="BAR", text=text)
+            else:
+                box.label(text=text, icon="TIME")
+            box.label(text="Esc stops between frames", icon="CANCEL")
         row = layout.row()
         row.scale_y = 1.5
         row.operator("hybrid_raycast.scan", icon="OUTLINER_DATA_POINTCLOUD")
