@@ -32,6 +32,8 @@ class Accel:
     kind = "?"
     #: rays per chunk: bounds the per-chunk working set
     chunk_size = 1 << 16
+    #: whether the structure traces with the shared kernel (and so needs the rays' shear)
+    uses_kernel = True
 
     def __init__(self, mesh: TriangleMesh, *, threads: int | None = None, chunk_size: int | None = None):
         if not isinstance(mesh, TriangleMesh):
@@ -58,7 +60,7 @@ class Accel:
     # -- the public interface --------------------------------------------------------
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Nearest hit per ray with tmin < t <= tmax (see DESIGN.md's hit convention)."""
-        rays = prepare_rays(origins, directions, tmin, tmax)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_kernel)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return Hits.empty(m)
@@ -67,7 +69,7 @@ class Accel:
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some triangle is hit with tmin < t <= tmax."""
-        rays = prepare_rays(origins, directions, tmin, tmax)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_kernel)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return np.zeros(m, bool)

@@ -69,6 +69,7 @@ class EmbreeAccel(Accel):
     """
 
     kind = "embree"
+    uses_kernel = False
 
     def __init__(self, mesh, *, robust: bool = True, threads: int | None = 1, **kw):
         self.robust = bool(robust)
@@ -124,8 +125,11 @@ class EmbreeAccel(Accel):
             return out
         s = self._start(rays)
         todo = np.arange(m)
-        for _ in range(_RESTARTS + 1):
-            o, d, tfar = self._moved(rays, todo, s[todo])
+        for attempt in range(_RESTARTS + 1):
+            if attempt == 0 and not s.any():  # every ray starts at its origin: no shift to make
+                o, d, tfar = rays.origins, rays.directions, rays.tmax
+            else:
+                o, d, tfar = self._moved(rays, todo, s[todo])
             live = tfar >= 0
             r = self._run(o[live], d[live], tfar[live], "INTERSECT")
             idx = todo[live]
@@ -152,7 +156,10 @@ class EmbreeAccel(Accel):
         if self.scene is None:
             return hit
         s = self._start(rays)
-        o, d, tfar = self._moved(rays, slice(None), s)
+        if s.any():
+            o, d, tfar = self._moved(rays, slice(None), s)
+        else:  # every ray starts at its origin: no shift to make
+            o, d, tfar = rays.origins, rays.directions, rays.tmax
         live = np.flatnonzero(tfar >= 0)
         occ = live[self._run(o[live], d[live], tfar[live], "OCCLUDED") != -1]
         # Embree also counts a hit at exactly the start (t = tmin, which we exclude):

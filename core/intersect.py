@@ -39,7 +39,7 @@ class Rays:
         return len(self.origins)
 
     def subset(self, idx) -> "Rays":
-        return Rays(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+        return Rays(*(None if getattr(self, f) is None else getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
 
 def _as_rays_array(a, name):
@@ -64,8 +64,9 @@ def _per_ray(x, m, name):
     return x
 
 
-def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
-    """Validate a ray batch and precompute its shear.
+def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, shear: bool = True) -> Rays:
+    """Validate a ray batch and precompute its shear (``shear=False``: validate only, the
+    shear fields are None; for structures that do not use this kernel, such as Embree).
 
     Raises ValueError for mismatched shapes, NaN or infinite origins or directions,
     zero-length directions (after rounding to float32), NaN interval bounds, or
@@ -93,6 +94,8 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
     if (lo > hi).any():
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
+    if not shear:
+        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), None, None, None, None)
     ad = np.abs(d32)
     # int8 axis indices: 3 bytes a ray instead of 24 (240 MB saved at 10M rays)
     kz = np.argmax(ad, axis=1).astype(np.int8)

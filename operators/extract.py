@@ -38,6 +38,13 @@ entries get " #<entry>" appended to keep names unique.
 ``mesh.source_info`` (a ``SourceInfo``) holds, per entry, the instancer, the source,
 the number of instances and of triangles.
 
+Instances: every placement of a mesh is one instance; ``mesh.instance_index`` gives each
+triangle's, and ``mesh.instances`` (an ``InstanceTable``) each instance's world matrix and
+the original object a ray hit on it reports (``scene.ray_cast``'s object: the object itself,
+the instanced object, or a geometry-nodes instancer), filled with the same batched writes as
+the other per-triangle arrays.  Corner normals and UVs are read only when asked
+(``attributes``), since they cost a read per mesh and 60 bytes per triangle.
+
 Not handled: ``hide_render`` on an *intermediate* instancer of nested instances (only the
 top-level instancer and the instanced object itself are checked; the depsgraph's
 iteration does not expose the chain), per-ray visibility (``visible_camera`` ...),
