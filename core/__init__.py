@@ -4,7 +4,8 @@ Never imports bpy or mathutils, so everything here runs and is tested without Bl
 embreex (optional) is imported only when an 'embree' structure is built.
 """
 
-from .accel import KINDS, Accel, build
+from .accel import Accel
+from .factory import KINDS, build
 from .embree import embree_available
 from .hits import Hits
 from .intersect import prepare_rays
@@ -12,7 +13,7 @@ from .mesh import TriangleMesh
 from .objio import load_obj
 from .rays import camera_rays, hemisphere_rays, uniform_rays
 from .calibration import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
-from .plan import Plan, plan, trace_online, trace_planned
+from .plan import Plan, plan, trace_online
 from .scenes import calibration_set
 
 __all__ = [
@@ -30,7 +31,6 @@ __all__ = [
     "measure_break_even",
     "plan",
     "trace_online",
-    "trace_planned",
     "camera_rays",
     "embree_available",
     "hemisphere_rays",

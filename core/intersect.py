@@ -7,9 +7,9 @@ shared edge yields the same edge function (negated) for both of its triangles, a
 can never slip between them.  Edge functions are evaluated in float32 and recomputed
 in float64 where one of them is exactly zero (section 3 of the paper).
 
-Conventions (DESIGN.md): nearest hit with tmin < t <= tmax; ties in t go to the
-lowest triangle index; both faces hit; degenerate triangles never hit; directions
-need not be normalised.
+Conventions (../shared/DESIGN.md): nearest hit with tmin < t <= tmax; ties in t go
+to the lowest triangle index; both faces hit; degenerate triangles never hit;
+directions need not be normalised.
 """
 
 from __future__ import annotations
@@ -221,7 +221,7 @@ class NearestHits:
     """Per-ray nearest (t, triangle) with the tie rule, packed in one uint64 key.
 
     The key is (sortable bits of t) << 32 | triangle, so the minimum key is the nearest
-    hit and, among equal t, the lowest triangle index (DESIGN.md's hit convention).
+    hit and, among equal t, the lowest triangle index (the hit convention stated at the top of this module).
     """
 
     def __init__(self, m: int):

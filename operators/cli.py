@@ -49,7 +49,8 @@ from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
 COMMANDS = ("analyze", "trace", "calibrate", "report")
-EXIT_OK, EXIT_INTERNAL, EXIT_BAD_ARGS, EXIT_NO_GEOMETRY, EXIT_UNWRITABLE, EXIT_INVALID_GEOMETRY, EXIT_NOTHING_TO_TRACE = range(7)
+#: exit codes of the CLI itself; each failure's own code is its HRCError's ``code`` (operators/jobs.py)
+EXIT_OK, EXIT_INTERNAL = 0, 1
 PLOT_PNG = "hybrid_raycast_plot.png"
 JSON_NAME = "hybrid_raycast_{command}.json"
 
