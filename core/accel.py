@@ -29,6 +29,8 @@ class Accel:
     kind = "?"
     #: rays per chunk: bounds the per-chunk working set
     chunk_size = 1 << 16
+    #: whether ``_trace_rays`` needs the Woop shear of core/intersect.py (Embree does not)
+    uses_shear = True
 
     def __init__(self, mesh: TriangleMesh, *, threads: int | None = None, chunk_size: int | None = None):
         if not isinstance(mesh, TriangleMesh):
@@ -56,7 +58,7 @@ class Accel:
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Nearest hit per ray with tmin < t <= tmax; an exact tie in t goes to the lowest
         triangle index; both faces are hit (the hit convention, ../shared/DESIGN.md)."""
-        rays = prepare_rays(origins, directions, tmin, tmax)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return Hits.empty(m)
@@ -65,7 +67,7 @@ class Accel:
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some triangle is hit with tmin < t <= tmax."""
-        rays = prepare_rays(origins, directions, tmin, tmax)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return np.zeros(m, bool)

@@ -30,16 +30,16 @@ class Rays:
     directions: np.ndarray  # (M, 3) float32
     tmin: np.ndarray  # (M,) float32
     tmax: np.ndarray  # (M,) float32
-    kx: np.ndarray  # (M,) int8: the three axes, kz the dominant one
-    ky: np.ndarray
-    kz: np.ndarray
-    shear: np.ndarray  # (M, 3) float32: Sx, Sy, Sz
+    kx: np.ndarray | None  # (M,) int8: the three axes, kz the dominant one
+    ky: np.ndarray | None
+    kz: np.ndarray | None
+    shear: np.ndarray | None  # (M, 3) float32: Sx, Sy, Sz (None: prepared with shear=False)
 
     def __len__(self):
         return len(self.origins)
 
     def subset(self, idx) -> "Rays":
-        return Rays(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+        return Rays(*(None if (a := getattr(self, f)) is None else a[idx] for f in self.__dataclass_fields__))
 
 
 def _as_rays_array(a, name):
@@ -64,8 +64,9 @@ def _per_ray(x, m, name):
     return x
 
 
-def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
-    """Validate a ray batch and precompute its shear.
+def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = True) -> Rays:
+    """Validate a ray batch and precompute its shear (``shear=False``: validate only,
+    for a structure that does not run this module's kernel).
 
     Raises ValueError for mismatched shapes, NaN or infinite origins or directions,
     zero-length directions (after rounding to float32), NaN interval bounds, or
@@ -93,6 +94,8 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
     if (lo > hi).any():
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
+    if not shear:
+        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), None, None, None, None)
     ad = np.abs(d32)
     # int8 axis indices: 3 bytes a ray instead of 24 (240 MB saved at 10M rays)
     kz = np.argmax(ad, axis=1).astype(np.int8)
@@ -103,12 +106,12 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf) -> Rays:
     # Keep the winding of the sheared frame: swap x and y when the dominant axis is negative.
     neg = dz < 0
     kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
-    shear = np.empty((m, 3), F32)
-    shear[:, 0] = d32[rows, kx] / dz
-    shear[:, 1] = d32[rows, ky] / dz
-    shear[:, 2] = F32(1.0) / dz
+    sxyz = np.empty((m, 3), F32)
+    sxyz[:, 0] = d32[rows, kx] / dz
+    sxyz[:, 1] = d32[rows, ky] / dz
+    sxyz[:, 2] = F32(1.0) / dz
     with np.errstate(over="ignore"):
-        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), kx, ky, kz, shear)
+        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), kx, ky, kz, sxyz)
 
 
 def _edge_functions(ax, ay, bx, by, cx, cy):
