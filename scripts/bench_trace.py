@@ -3,6 +3,18 @@
     .venv/bin/python scripts/bench_trace.py                       # 10k, 100k, 1M; 100k rays; 5 repeats
     .venv/bin/python scripts/bench_trace.py --sizes 10k --rays 10000 --repeats 2
     .venv/bin/python scripts/bench_trace.py --sizes 1m --memory-check   # + 10M rays through grid and BVH
+    .venv/bin/python scripts/bench_trace.py --engines                   # the engine table (make bench-trace)
+
+The engine table (``--engines``): on 3 icospheres (983,040 triangles) and Suzanne at
+level 5 (1,007,616), 1M random rays and about 1M camera rays, raw embreex (a thread
+pool over 64k-ray chunks, and one thread), ``core.build(mesh, 'embree')`` with its
+defaults and with threads=1, the numpy BVH and grid, Blender's BVHTree loop (on a
+strided subset) and Open3D's ``RaycastingScene.cast_rays``, which runs in its own venv
+(``.venv-open3d``; scripts/bench_open3d.py) on the same rays saved to a temporary
+directory.  Columns: build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and
+the share of rays that hit the same triangle as raw embreex.
+
+The per-size table (the default):
 
 Scenes are Blender's Suzanne under a Subdivision Surface modifier, at the level whose
 triangle count is nearest (in log scale) to each requested size: level 2 = 15,744,
@@ -236,12 +248,10 @@ class ProjectTracer:
         self.name = kind
         self.kind = kind
         self.mesh = scene["mesh"]
-        self.config = {} if threads is None or kind == "embree" else {"threads": threads}
+        self.config = {} if threads is None else {"threads": threads}
         self.accel = None
-        try:
-            core.build(core.TriangleMesh(np.eye(3, dtype=np.float32), [[0, 1, 2]]), kind)
-        except Exception as e:  # a structure still being written, or embreex missing
-            raise Unavailable(f"{type(e).__name__}: {e}") from None
+        if kind == "embree" and not core.embree_available():
+            raise Unavailable("embreex is not installed")
 
     def build(self):
         self.accel = core.build(self.mesh, self.kind, **self.config)
@@ -781,14 +791,298 @@ def versions():
     return out
 
 
+# -- the engine table (--engines) ---------------------------------------------------------
+#: the scenes of the engine table: name -> what it is
+ENGINE_SCENES = {
+    "icospheres": "3 geodesic spheres (frequency 128, 327,680 triangles each), radius 1, centres 2.5 apart on x",
+    "suzanne": "Suzanne, Subdivision Surface level 5, evaluated by Blender",
+}
+OPEN3D_PYTHON = ROOT / ".venv-open3d" / "bin" / "python"
+
+
+def icospheres_mesh():
+    from hybrid_raycast.core.scenes import geodesic_sphere_arrays
+
+    v, t = geodesic_sphere_arrays(128)
+    vertices = np.concatenate([v + (x, 0.0, 0.0) for x in (-2.5, 0.0, 2.5)])
+    triangles = np.concatenate([t + i * len(v) for i in range(3)])
+    return core.TriangleMesh(vertices, triangles)
+
+
+def engine_scene(name, args):
+    mesh = icospheres_mesh() if name == "icospheres" else core.TriangleMesh(*monkey_triangles(5))
+    cam = camera_setup(mesh, args.rays)
+    rays = {"random": uniform_rays(mesh, args.rays, args.seed), "camera": camera_rays(**cam)}
+    return dict(name=name, what=ENGINE_SCENES[name], mesh=mesh, rays=rays, camera=cam)
+
+
+class RawEmbreex:
+    """embreex as a user would call it: EmbreeScene(robust=True), the indexed
+    TriangleMesh(scene, vertices, triangles), a one-ray run to commit; trace =
+    ``scene.run(o, d, output=1)`` over 65,536-ray chunks on a thread pool (embreex's ray
+    loop releases the GIL).  Build is split into geometry (embreex copying the arrays
+    into Embree's buffers) and commit (Embree's BVH build)."""
+
+    chunk = 1 << 16
+
+    def __init__(self, mesh, threads):
+        from embreex import mesh_construction, rtcore_scene
+
+        self.rtcore_scene, self.mesh_construction = rtcore_scene, mesh_construction
+        self.name = f"raw embreex, {threads}-thread pool over 64k-ray chunks"
+        self.mesh, self.threads, self.scene = mesh, threads, None
+
+    def build(self):
+        self.scene = None
+        gc.collect()
+        t0 = time.perf_counter()
+        scene = self.rtcore_scene.EmbreeScene(robust=True)
+        self._geometry = self.mesh_construction.TriangleMesh(scene, self.mesh.vertices, self.mesh.triangles)
+        t1 = time.perf_counter()
+        one = np.zeros((1, 3), np.float32)
+        scene.run(one, one + np.float32(1), dists=np.zeros(1, np.float32))
+        t2 = time.perf_counter()
+        self.scene, self.split = scene, (t1 - t0, t2 - t1)
+        return t2 - t0
+
+    def _run(self, a):
+        o, d = self._rays
+        r = self.scene.run(o[a : a + self.chunk], d[a : a + self.chunk], output=1)
+        return r["primID"]
+
+    def trace(self, o, d):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._rays = (o, d)
+        starts = range(0, len(o), self.chunk)
+        if self.threads <= 1:
+            return np.concatenate([self._run(a) for a in starts]).astype(np.int64)
+        with ThreadPoolExecutor(self.threads) as pool:
+            return np.concatenate(list(pool.map(self._run, starts))).astype(np.int64)
+
+
+class EngineProject:
+    """``core.build(mesh, kind, **config)``; trace returns the triangle index per ray."""
+
+    def __init__(self, mesh, kind, label, **config):
+        if kind == "embree" and not core.embree_available():
+            raise Unavailable("embreex is not installed")
+        self.name, self.mesh, self.kind, self.config, self.accel = label, mesh, kind, config, None
+
+    def build(self):
+        self.accel = None
+        gc.collect()
+        self.accel = core.build(self.mesh, self.kind, **self.config)
+        return self.accel.build_time
+
+    def trace(self, o, d):
+        return self.accel.trace(o, d).triangle.astype(np.int64)
+
+
+class EngineBVHTree(BVHTreeLoop):
+    """Blender's BVHTree, a Python loop of ray_cast per ray, on an evenly strided subset."""
+
+    def __init__(self, mesh, cap):
+        super().__init__({"mesh": mesh}, None)
+        self.cap = cap
+        self.name = f"mathutils BVHTree, per-ray loop ({cap:,} rays)"
+
+    def trace(self, o, d):
+        return super().trace(o, d)[1]
+
+
+def run_open3d(scene, args, tmp):
+    """Open3D's build and cast_rays in .venv-open3d on the same triangles and rays."""
+    import subprocess
+
+    if not OPEN3D_PYTHON.exists():
+        return "n/a: no .venv-open3d (make open3d-venv)"
+    mesh = scene["mesh"]
+    np.savez(tmp / "mesh.npz", vertices=mesh.vertices, triangles=mesh.triangles.astype(np.uint32))
+    paths = []
+    for kind, (o, d) in scene["rays"].items():
+        paths.append(tmp / f"{kind}.npy")
+        np.save(paths[-1], np.concatenate([o, d], axis=1).astype(np.float32))
+    cmd = [str(OPEN3D_PYTHON), str(ROOT / "scripts" / "bench_open3d.py"), str(tmp / "mesh.npz"), *map(str, paths),
+           "--repeats", str(args.repeats), "--out", str(tmp)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
+    if r.returncode != 0 or not lines:
+        return f"n/a: bench_open3d.py failed ({r.returncode}): {r.stderr.strip()[-300:]}"
+    out = json.loads(lines[-1])
+    if "error" in out:
+        return "n/a: " + out["error"]
+    out["prim"] = {kind: np.load(tmp / f"{kind}.prim.npy") for kind in scene["rays"]}
+    return out
+
+
+def engine_rows(scene, args):
+    """Build every tracer ``--repeats`` times, then time the traces interleaved (one run
+    of each tracer per round), so a load change hits every tracer alike."""
+    mesh = scene["mesh"]
+    threads = core.accel.default_threads() if args.threads is None else args.threads
+    makers = [
+        ("raw", lambda: RawEmbreex(mesh, threads)),
+        ("raw1", lambda: RawEmbreex(mesh, 1)),
+        ("embree", lambda: EngineProject(mesh, "embree", f"core.build(mesh, 'embree'), defaults ({core.accel.default_threads()} threads)")),
+        ("embree1", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', threads=1)", threads=1)),
+        ("bvh", lambda: EngineProject(mesh, "bvh", f"numpy BVH ({threads} threads)", threads=threads)),
+        ("grid", lambda: EngineProject(mesh, "grid", f"numpy grid ({threads} threads)", threads=threads)),
+        ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
+    ]
+    tracers, rows = {}, {}
+    for key, make in makers:
+        if key in ("raw", "raw1", "embree", "embree1") and not core.embree_available():
+            rows[key] = dict(name=key, error="embreex is not installed")
+            continue
+        try:
+            tracers[key] = make()
+        except (Unavailable, ImportError) as e:
+            rows[key] = dict(name=key, error=str(e))
+    for key, tr in tracers.items():
+        rows[key] = dict(name=tr.name, builds=[], traces={k: [] for k in scene["rays"]}, prim={})
+    for _ in range(args.repeats):
+        for key, tr in tracers.items():
+            rows[key]["builds"].append(tr.build())
+            if key == "raw":
+                rows[key].setdefault("splits", []).append(tr.split)
+    for kind, (o, d) in scene["rays"].items():
+        sub = strided(len(o), args.loop_rays)
+        for _ in range(args.repeats):
+            for key, tr in tracers.items():
+                oo, dd = (o[sub], d[sub]) if key == "bvhtree" else (o, d)
+                t0 = time.perf_counter()
+                prim = tr.trace(oo, dd)
+                rows[key]["traces"][kind].append(time.perf_counter() - t0)
+                rows[key]["prim"][kind] = prim
+                rows[key].setdefault("rays", {})[kind] = len(oo)
+    for key, tr in tracers.items():
+        if hasattr(tr, "release"):
+            tr.release()
+    tracers.clear()
+    gc.collect()
+    return rows
+
+
+def print_engine_tables(scene, rows, o3d):
+    mesh = scene["mesh"]
+    raw = rows.get("raw", {})
+    o3d_ok = isinstance(o3d, dict)
+    med = statistics.median
+    for kind, (o, d) in scene["rays"].items():
+        m = len(o)
+        desc = ("origins uniform in the box padded by 1%, directions uniform on the sphere" if kind == "random" else
+                "pinhole camera {width}x{height}, fov {fov_deg:g} deg, looking at the scene's centre".format(**scene["camera"]))
+        print(f"\n### {scene['name']} ({scene['what']}): N = {mesh.triangle_count:,} triangles; {kind} rays, "
+              f"M = {m:,} ({desc})\n")
+        print("| tracer | build s | Mrays/s | x raw embreex | x Open3D | hit % | same triangle as raw embreex % |")
+        print("|---|--:|--:|--:|--:|--:|--:|")
+
+        def rate(r):
+            return r["rays"][kind] / med(r["traces"][kind]) if "traces" in r else None
+
+        base = rate(raw) if "traces" in raw else None
+        o3d_rate = m / med(o3d["trace_s"][kind]) if o3d_ok else None
+        table = [(r.get("name", key), r) for key, r in rows.items()]
+        for name, r in table:
+            if "error" in r:
+                print(f"| {name} | n/a: {r['error']} | | | | | |")
+                continue
+            rps = rate(r)
+            prim = r["prim"][kind]
+            ref = raw["prim"][kind] if "prim" in raw else None
+            if ref is not None and len(prim) != len(ref):
+                ref = ref[strided(m, len(prim))]
+            same = "n/a" if ref is None else f"{100 * np.mean(prim == ref):.3f}"
+            print(f"| {name} | {med(r['builds']):#.3g} | {rps / 1e6:#.3g} | {_ratio(rps, base)} | {_ratio(rps, o3d_rate)}"
+                  f" | {100 * np.mean(prim >= 0):.1f} | {same} |")
+        if o3d_ok:
+            prim = o3d["prim"][kind]
+            same = "n/a" if "prim" not in raw else f"{100 * np.mean(prim == raw['prim'][kind]):.3f}"
+            print(f"| Open3D {o3d['open3d']} RaycastingScene.cast_rays (own venv, numpy {o3d['numpy']}) | {med(o3d['build_s']):#.3g}"
+                  f" | {o3d_rate / 1e6:#.3g} | {_ratio(o3d_rate, base)} | 1.00x | {100 * np.mean(prim >= 0):.1f} | {same} |")
+        else:
+            print(f"| Open3D RaycastingScene.cast_rays | {o3d} | | | | | |")
+    if "splits" in raw:
+        g = med(s[0] for s in raw["splits"])
+        c = med(s[1] for s in raw["splits"])
+        print(f"\nraw embreex build = geometry {g:.3f} s (embreex's mesh_construction.TriangleMesh copying the arrays) "
+              f"+ commit {c:.3f} s (Embree's BVH build)" + (f"; Open3D's whole build {med(o3d['build_s']):.3f} s." if o3d_ok else "."))
+
+
+def engine_goals(scene, rows, o3d):
+    med = statistics.median
+
+    def rate(key, kind):
+        r = rows.get(key, {})
+        return r["rays"][kind] / med(r["traces"][kind]) if "traces" in r else None
+
+    def build(key):
+        r = rows.get(key, {})
+        return med(r["builds"]) if "builds" in r else None
+
+    print(f"\n### Goals, {scene['name']}\n")
+    print("| ratio | random rays | camera rays | goal |")
+    print("|---|--:|--:|---|")
+    kinds = list(scene["rays"])
+    o3d_rate = {k: len(scene["rays"][k][0]) / med(o3d["trace_s"][k]) for k in kinds} if isinstance(o3d, dict) else {}
+    lines = [
+        ("project Embree (defaults) / raw threaded embreex, trace", lambda k: _ratio(rate("embree", k), rate("raw", k)), ">= 0.85x"),
+        ("project Embree (defaults) / Open3D, trace", lambda k: _ratio(rate("embree", k), o3d_rate.get(k)), ">= 0.8x"),
+        ("project Embree, 2 threads / 1 thread", lambda k: _ratio(rate("embree", k), rate("embree1", k)), "reported (>= 1.7x)"),
+        ("raw embreex, pool / 1 thread", lambda k: _ratio(rate("raw", k), rate("raw1", k)), "reported"),
+        ("numpy BVH / BVHTree loop", lambda k: _ratio(rate("bvh", k), rate("bvhtree", k)), ">= 2x random, >= 1x camera"),
+        ("numpy grid / BVHTree loop", lambda k: _ratio(rate("grid", k), rate("bvhtree", k)), ">= 1x random"),
+    ]
+    for label, f, goal in lines:
+        print(f"| {label} | {f(kinds[0])} | {f(kinds[1])} | {goal} |")
+    b = _ratio(build("embree"), build("raw"))
+    bo = _ratio(build("embree"), med(o3d["build_s"]) if isinstance(o3d, dict) else None)
+    print(f"| project Embree build / raw embreex build | {b} | | <= 1.3x |")
+    print(f"| project Embree build / Open3D build | {bo} | | reported |")
+
+
+def engines_main(args):
+    import tempfile
+
+    names = [s for s in args.scenes.split(",") if s]
+    for s in names:
+        if s not in ENGINE_SCENES:
+            raise SystemExit(f"unknown scene {s!r}; expected some of {', '.join(ENGINE_SCENES)}")
+    print("# Engine table (scripts/bench_trace.py --engines)\n")
+    print(f"- date {datetime.datetime.now().isoformat(timespec='seconds')}; {os.cpu_count()} cores; load average at start "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print("- " + "; ".join(f"{k} {v}" for k, v in versions().items()))
+    print(f"- medians of {args.repeats} builds and {args.repeats} traces per tracer, traces interleaved round by round; "
+          f"M = {args.rays:,} rays per batch (seed {args.seed}); the BVHTree loop traces an evenly strided subset of "
+          f"{args.loop_rays:,}; Open3D runs in .venv-open3d as a subprocess on the same triangles and rays")
+    report = []
+    for name in names:
+        scene = engine_scene(name, args)
+        rows = engine_rows(scene, args)
+        with tempfile.TemporaryDirectory(prefix="hrc-open3d-") as tmp:
+            o3d = run_open3d(scene, args, Path(tmp))
+        print_engine_tables(scene, rows, o3d)
+        engine_goals(scene, rows, o3d)
+        sys.stdout.flush()
+        report.append(dict(
+            scene=name, triangles=scene["mesh"].triangle_count, load_average_end=os.getloadavg(),
+            rows={k: {f: v for f, v in r.items() if f != "prim"} for k, r in rows.items()},
+            open3d=({f: v for f, v in o3d.items() if f != "prim"} if isinstance(o3d, dict) else o3d),
+        ))
+        print(f"\nload average at the end of {name}: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return report
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="10k,100k,1m", help="scene sizes in triangles (nearest subdivision level)")
-    ap.add_argument("--rays", type=int, default=100_000, help="rays per batch (the camera image is about this many pixels)")
+    ap.add_argument("--rays", type=int, default=None,
+                    help="rays per batch, the camera image about this many pixels (default 100,000; --engines: 1,000,000)")
     ap.add_argument("--repeats", type=int, default=5, help="runs per measurement; medians are reported")
     ap.add_argument("--kinds", default=",".join(PROJECT_KINDS), help="project structures to measure")
     ap.add_argument("--peers", default=",".join(PEERS), help="peers to measure ('none' for none)")
-    ap.add_argument("--threads", type=int, default=None, help="threads for grid/bvh/brute (default: the library's)")
+    ap.add_argument("--threads", type=int, default=None, help="threads per structure (default: the library's)")
     ap.add_argument("--ref-rays", type=int, default=2000, help="rays checked against the float64 reference")
     ap.add_argument("--brute-rays", type=int, default=2000, help="rays traced by brute force")
     ap.add_argument("--trimesh-rays", type=int, default=1000, help="rays traced by trimesh")
@@ -796,7 +1090,20 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-check", action="store_true", help="also trace --memory-rays random rays with grid and BVH on the largest scene")
     ap.add_argument("--memory-rays", type=int, default=10_000_000)
     ap.add_argument("--json", type=Path, help="write every measurement here")
+    ap.add_argument("--engines", action="store_true",
+                    help="the engine table instead: raw embreex, the project's Embree, numpy BVH and grid, the BVHTree "
+                         "loop and Open3D on --scenes with --rays (default 1M) random and camera rays")
+    ap.add_argument("--scenes", default=",".join(ENGINE_SCENES), help="scenes of the engine table")
+    ap.add_argument("--loop-rays", type=int, default=200_000, help="rays the BVHTree loop traces in the engine table")
     args = ap.parse_args(argv)
+    if args.engines:
+        args.rays = args.rays or 1_000_000
+        report = engines_main(args)
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=1, default=_json_value))
+        return 0
+    args.rays = args.rays or 100_000
     kinds = [k for k in args.kinds.split(",") if k]
     peers = [p for p in args.peers.split(",") if p and p != "none"]
     for name in kinds + peers:
@@ -821,7 +1128,7 @@ def main(argv=None) -> int:
           f"{', '.join(f'{x:.2f}' for x in header['load_average'])}")
     print("- " + "; ".join(f"{k} {v}" for k, v in header["versions"].items()))
     print(f"- medians of {args.repeats} runs; rays per batch M = {args.rays:,} (seed {args.seed}); "
-          f"threads for grid/bvh: {args.threads or 'library default'}; Embree on one thread (embreex traces one ray at a time)")
+          f"threads per structure: {args.threads or 'library default'}")
     print("- ray batches: random (the paper's: origins uniform in the scene box padded by 1%, directions uniform "
           "on the sphere) and camera (pinhole primary rays, row-major from the top row)")
     print(f"- caps: brute force on {args.brute_rays:,} rays and only up to 20k triangles; trimesh on "
