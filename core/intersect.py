@@ -80,15 +80,16 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
     with np.errstate(over="ignore", invalid="ignore"):  # overflow to inf is reported below
         o32 = np.ascontiguousarray(o, dtype=F32)
         d32 = np.ascontiguousarray(d, dtype=F32)
+        # whole-array checks first (a row-wise reduce over 3 columns costs ~10x more); the
+        # rows are found only to name them in the error
         for name, a in (("origins", o32), ("directions", d32)):
-            bad = ~np.isfinite(a).all(axis=1)
-            if bad.any():
-                w = np.flatnonzero(bad)
+            if not np.isfinite(a).all():
+                w = np.flatnonzero(~np.isfinite(a).all(axis=1))
                 raise ValueError(f"{w.size} of {m} rays have NaN or infinite {name} (or overflow float32), first at ray {w[:5].tolist()}")
-    zero = ~(d32 != 0).any(axis=1)
-    if zero.any():
-        w = np.flatnonzero(zero)
-        raise ValueError(f"{w.size} of {m} rays have a zero-length direction, first at ray {w[:5].tolist()}")
+    if not d32.all():  # some component is zero: is a whole direction zero?
+        w = np.flatnonzero(~(d32 != 0).any(axis=1))
+        if w.size:
+            raise ValueError(f"{w.size} of {m} rays have a zero-length direction, first at ray {w[:5].tolist()}")
     lo = _per_ray(tmin, m, "tmin")
     hi = _per_ray(tmax, m, "tmax")
     if (lo > hi).any():
