@@ -4,6 +4,7 @@
     .venv/bin/python scripts/bench_trace.py --sizes 10k --rays 10000 --repeats 2
     .venv/bin/python scripts/bench_trace.py --sizes 1m --memory-check   # + 10M rays through grid and BVH
     .venv/bin/python scripts/bench_trace.py --engines                   # the engine table (make bench-trace)
+    .venv/bin/python scripts/bench_trace.py --scale 10m                 # Suzanne instanced 10x: build, trace, peak memory
 
 The engine table (``--engines``): on 3 icospheres (983,040 triangles) and Suzanne at
 level 5 (1,007,616), 1M random rays and about 1M camera rays, raw embreex (a thread
@@ -160,7 +161,13 @@ def _trim():
 
 
 class PeakMemory:
-    """Peak extra memory of a block: RSS high-water mark (Linux) and tracemalloc's peak."""
+    """Peak extra memory of a block: RSS high-water mark (Linux) and tracemalloc's peak
+    (``traced=False``: RSS only; tracemalloc slows code that allocates per element, such
+    as embreex's geometry copy, by 10x or more)."""
+
+    def __init__(self, traced=True):
+        self.trace_python = traced
+        self.traced = None
 
     def __enter__(self):
         _trim()
@@ -170,12 +177,14 @@ class PeakMemory:
             self.rss0 = _proc_status("VmRSS")
         except OSError:
             self.rss0 = None
-        tracemalloc.start()
+        if self.trace_python:
+            tracemalloc.start()
         return self
 
     def __exit__(self, *exc):
-        self.traced = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
+        if self.trace_python:
+            self.traced = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
         hwm = _proc_status("VmHWM") if self.rss0 is not None else None
         self.rss = None if hwm is None else max(0, hwm - self.rss0)
         return False
@@ -1074,6 +1083,67 @@ def engines_main(args):
     return report
 
 
+# -- the scale check (--scale) ------------------------------------------------------------
+def instanced_monkey(copies):
+    """Suzanne at Subdivision Surface level 5 (1,007,616 triangles), ``copies`` times side
+    by side in rows of 5, 3 units apart (the monkey is about 2.7 wide): a plain triangle
+    soup of copies x 1,007,616 triangles, as instancing extracts it."""
+    v, t = monkey_triangles(5)
+    vertices = np.empty((copies * len(v), 3), np.float32)
+    triangles = np.empty((copies * len(t), 3), np.int32)
+    for i in range(copies):
+        vertices[i * len(v) : (i + 1) * len(v)] = v + np.array([3.0 * (i % 5), 3.0 * (i // 5), 0.0], np.float32)
+        triangles[i * len(t) : (i + 1) * len(t)] = t + i * len(v)
+    return core.TriangleMesh(vertices, triangles)
+
+
+def scale_check(args):
+    """Build and trace each structure once on the instanced scene, with its peak memory."""
+    import resource
+
+    copies = max(1, round(parse_size(args.scale) / MONKEY_TRIANGLES[5]))
+    t0 = time.perf_counter()
+    mesh = instanced_monkey(copies)
+    made = time.perf_counter() - t0
+    o, d = uniform_rays(mesh, args.rays, args.seed)
+    mesh_bytes = mesh.vertices.nbytes + mesh.triangles.nbytes + mesh.tri_vertices.nbytes + mesh.valid.nbytes
+    print(f"# Scale check (scripts/bench_trace.py --scale {args.scale})\n")
+    print(f"- date {datetime.datetime.now().isoformat(timespec='seconds')}; {os.cpu_count()} cores; load average at start "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}; physical memory "
+          f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.1f} GiB")
+    print(f"- scene: Suzanne at level 5 instanced {copies}x (rows of 5, 3 units apart): N = {mesh.triangle_count:,} "
+          f"triangles, {len(mesh.vertices):,} vertices, made in {made:.1f} s; the TriangleMesh holds {_mib(mesh_bytes)} MiB")
+    print(f"- {args.rays:,} random rays (origins uniform in the box padded by 1%, directions uniform), "
+          f"{_mib(o.nbytes + d.nbytes)} MiB; one build and one trace per structure, default threads")
+    print("- extra RSS: the structure's build + trace peak over the resident mesh and rays (VmHWM after a reset; "
+          "tracemalloc stays off, it slows embreex's geometry copy tenfold), the Hits output included\n")
+    print("| structure | build s | trace s | Mrays/s | hit % | extra RSS MiB |")
+    print("|---|--:|--:|--:|--:|--:|")
+    out = []
+    kinds = [k for k in args.kinds.split(",") if k in ("embree", "bvh", "grid")]
+    for kind in kinds:
+        if kind == "embree" and not core.embree_available():
+            print("| embree | n/a: embreex is not installed | | | | |")
+            continue
+        with PeakMemory(traced=False) as pm:
+            acc = core.build(mesh, kind)
+            t0 = time.perf_counter()
+            hits = acc.trace(o, d)
+            ts = time.perf_counter() - t0
+            b = acc.build_time
+            del acc
+        hit = float(np.mean(hits.hit))
+        print(f"| {kind} | {b:.2f} | {ts:.2f} | {len(o) / ts / 1e6:.3f} | {100 * hit:.1f} | {_mib(pm.rss)} |")
+        sys.stdout.flush()
+        out.append(dict(kind=kind, build_s=b, trace_s=ts, hit_fraction=hit, peak_rss_bytes=pm.rss))
+        del hits
+        _trim()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(f"\nprocess peak RSS (getrusage ru_maxrss), scene making included: {_mib(peak)} MiB; "
+          f"load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return dict(triangles=mesh.triangle_count, copies=copies, rays=len(o), process_peak_rss_bytes=peak, structures=out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="10k,100k,1m", help="scene sizes in triangles (nearest subdivision level)")
@@ -1095,7 +1165,18 @@ def main(argv=None) -> int:
                          "loop and Open3D on --scenes with --rays (default 1M) random and camera rays")
     ap.add_argument("--scenes", default=",".join(ENGINE_SCENES), help="scenes of the engine table")
     ap.add_argument("--loop-rays", type=int, default=200_000, help="rays the BVHTree loop traces in the engine table")
+    ap.add_argument("--scale", help="instead: build and trace embree, bvh and grid once on Suzanne (level 5) instanced "
+                                    "to about this many triangles (e.g. 10m), with peak memory; --rays (default 1M)")
     args = ap.parse_args(argv)
+    if args.scale:
+        args.rays = args.rays or 1_000_000
+        if args.kinds == ",".join(PROJECT_KINDS):
+            args.kinds = "embree,bvh,grid"
+        report = scale_check(args)
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=1, default=_json_value))
+        return 0
     if args.engines:
         args.rays = args.rays or 1_000_000
         report = engines_main(args)
