@@ -900,36 +900,71 @@ class EngineBVHTree(BVHTreeLoop):
         return super().trace(o, d)[1]
 
 
-def run_open3d(scene, args, tmp):
-    """Open3D's build and cast_rays in .venv-open3d on the same triangles and rays."""
-    import subprocess
+class Open3DServer:
+    """Open3D's RaycastingScene in .venv-open3d (scripts/bench_open3d.py), driven one
+    command at a time so its runs interleave with the others'; times are measured inside
+    that process (no pipe overhead)."""
 
-    if not OPEN3D_PYTHON.exists():
-        return "n/a: no .venv-open3d (make open3d-venv)"
-    mesh = scene["mesh"]
-    np.savez(tmp / "mesh.npz", vertices=mesh.vertices, triangles=mesh.triangles.astype(np.uint32))
-    paths = []
-    for kind, (o, d) in scene["rays"].items():
-        paths.append(tmp / f"{kind}.npy")
-        np.save(paths[-1], np.concatenate([o, d], axis=1).astype(np.float32))
-    cmd = [str(OPEN3D_PYTHON), str(ROOT / "scripts" / "bench_open3d.py"), str(tmp / "mesh.npz"), *map(str, paths),
-           "--repeats", str(args.repeats), "--out", str(tmp)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
-    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
-    if r.returncode != 0 or not lines:
-        return f"n/a: bench_open3d.py failed ({r.returncode}): {r.stderr.strip()[-300:]}"
-    out = json.loads(lines[-1])
-    if "error" in out:
-        return "n/a: " + out["error"]
-    out["prim"] = {kind: np.load(tmp / f"{kind}.prim.npy") for kind in scene["rays"]}
-    return out
+    def __init__(self, scene, tmp):
+        import subprocess
+
+        if not OPEN3D_PYTHON.exists():
+            raise Unavailable("no .venv-open3d (make open3d-venv)")
+        mesh = scene["mesh"]
+        np.savez(tmp / "mesh.npz", vertices=mesh.vertices, triangles=mesh.triangles.astype(np.uint32))
+        paths = []
+        for kind, (o, d) in scene["rays"].items():
+            paths.append(tmp / f"{kind}.npy")
+            np.save(paths[-1], np.concatenate([o, d], axis=1).astype(np.float32))
+        self.tmp, self.kinds = tmp, list(scene["rays"])
+        self.proc = subprocess.Popen(
+            [str(OPEN3D_PYTHON), str(ROOT / "scripts" / "bench_open3d.py"), str(tmp / "mesh.npz"), *map(str, paths),
+             "--out", str(tmp)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        hello = self._read()
+        if "error" in hello:
+            self.close()
+            raise Unavailable(hello["error"])
+        self.name = f"Open3D {hello['open3d']} RaycastingScene.cast_rays (own venv, numpy {hello['numpy']})"
+
+    def _read(self):
+        line = self.proc.stdout.readline()
+        if not line:
+            err = self.proc.stderr.read()[-300:]
+            raise Unavailable(f"bench_open3d.py stopped: {err.strip()}")
+        return json.loads(line)
+
+    def _ask(self, cmd):
+        self.proc.stdin.write(cmd + "\n")
+        self.proc.stdin.flush()
+        out = self._read()
+        if "error" in out:
+            raise RuntimeError(out["error"])
+        return out
+
+    def build(self):
+        return self._ask("build")["s"]
+
+    def trace_named(self, kind):
+        return self._ask(f"trace {kind}")["s"]
+
+    def primitives(self):
+        self._ask("quit")
+        self.proc.wait(timeout=60)
+        return {k: np.load(self.tmp / f"{k}.prim.npy") for k in self.kinds}
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
 
 
-def engine_rows(scene, args):
-    """Build every tracer ``--repeats`` times, then time the traces interleaved (one run
-    of each tracer per round), so a load change hits every tracer alike."""
+def engine_rows(scene, args, tmp):
+    """Build every tracer ``--repeats`` times and time its traces ``--repeats`` times,
+    round-robin (one run of each tracer per round), so a change in the machine's load
+    hits every tracer alike."""
     mesh = scene["mesh"]
     threads = core.accel.default_threads() if args.threads is None else args.threads
+    has_embree = core.embree_available()
     makers = [
         ("raw", lambda: RawEmbreex(mesh, threads)),
         ("raw1", lambda: RawEmbreex(mesh, 1)),
@@ -938,88 +973,85 @@ def engine_rows(scene, args):
         ("bvh", lambda: EngineProject(mesh, "bvh", f"numpy BVH ({threads} threads)", threads=threads)),
         ("grid", lambda: EngineProject(mesh, "grid", f"numpy grid ({threads} threads)", threads=threads)),
         ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
+        ("open3d", lambda: Open3DServer(scene, tmp)),
     ]
+    caps = {"bvh": args.numpy_rays, "grid": args.numpy_rays, "bvhtree": args.loop_rays}
     tracers, rows = {}, {}
     for key, make in makers:
-        if key in ("raw", "raw1", "embree", "embree1") and not core.embree_available():
+        if key in ("raw", "raw1", "embree", "embree1") and not has_embree:
             rows[key] = dict(name=key, error="embreex is not installed")
             continue
         try:
             tracers[key] = make()
         except (Unavailable, ImportError) as e:
             rows[key] = dict(name=key, error=str(e))
-    for key, tr in tracers.items():
-        rows[key] = dict(name=tr.name, builds=[], traces={k: [] for k in scene["rays"]}, prim={})
-    for _ in range(args.repeats):
+    try:
         for key, tr in tracers.items():
-            rows[key]["builds"].append(tr.build())
-            if key == "raw":
-                rows[key].setdefault("splits", []).append(tr.split)
-    for kind, (o, d) in scene["rays"].items():
-        sub = strided(len(o), args.loop_rays)
+            rows[key] = dict(name=tr.name, builds=[], traces={k: [] for k in scene["rays"]}, prim={}, rays={})
         for _ in range(args.repeats):
             for key, tr in tracers.items():
-                oo, dd = (o[sub], d[sub]) if key == "bvhtree" else (o, d)
-                t0 = time.perf_counter()
-                prim = tr.trace(oo, dd)
-                rows[key]["traces"][kind].append(time.perf_counter() - t0)
-                rows[key]["prim"][kind] = prim
-                rows[key].setdefault("rays", {})[kind] = len(oo)
-    for key, tr in tracers.items():
-        if hasattr(tr, "release"):
-            tr.release()
-    tracers.clear()
-    gc.collect()
+                rows[key]["builds"].append(tr.build())
+                if key == "raw":
+                    rows[key].setdefault("splits", []).append(tr.split)
+        for kind, (o, d) in scene["rays"].items():
+            for _ in range(args.repeats):
+                for key, tr in tracers.items():
+                    sub = strided(len(o), caps[key]) if key in caps else slice(None)
+                    oo, dd = o[sub], d[sub]
+                    if key == "open3d":
+                        rows[key]["traces"][kind].append(tr.trace_named(kind))
+                    else:
+                        t0 = time.perf_counter()
+                        rows[key]["prim"][kind] = tr.trace(oo, dd)
+                        rows[key]["traces"][kind].append(time.perf_counter() - t0)
+                    rows[key]["rays"][kind] = len(oo)
+        if "open3d" in tracers:
+            rows["open3d"]["prim"] = tracers["open3d"].primitives()
+    finally:
+        if "open3d" in tracers:
+            tracers["open3d"].close()
+        tracers.clear()
+        gc.collect()
     return rows
 
 
-def print_engine_tables(scene, rows, o3d):
+def print_engine_tables(scene, rows):
     mesh = scene["mesh"]
-    raw = rows.get("raw", {})
-    o3d_ok = isinstance(o3d, dict)
     med = statistics.median
+
+    def rate(key, kind):
+        r = rows.get(key, {})
+        return r["rays"][kind] / med(r["traces"][kind]) if "traces" in r else None
+
     for kind, (o, d) in scene["rays"].items():
         m = len(o)
         desc = ("origins uniform in the box padded by 1%, directions uniform on the sphere" if kind == "random" else
                 "pinhole camera {width}x{height}, fov {fov_deg:g} deg, looking at the scene's centre".format(**scene["camera"]))
         print(f"\n### {scene['name']} ({scene['what']}): N = {mesh.triangle_count:,} triangles; {kind} rays, "
               f"M = {m:,} ({desc})\n")
-        print("| tracer | build s | Mrays/s | x raw embreex | x Open3D | hit % | same triangle as raw embreex % |")
-        print("|---|--:|--:|--:|--:|--:|--:|")
-
-        def rate(r):
-            return r["rays"][kind] / med(r["traces"][kind]) if "traces" in r else None
-
-        base = rate(raw) if "traces" in raw else None
-        o3d_rate = m / med(o3d["trace_s"][kind]) if o3d_ok else None
-        table = [(r.get("name", key), r) for key, r in rows.items()]
-        for name, r in table:
+        print("| tracer | rays traced | build s | Mrays/s | x raw embreex | x Open3D | hit % | same triangle as raw embreex % |")
+        print("|---|--:|--:|--:|--:|--:|--:|--:|")
+        ref = rows.get("raw", {}).get("prim", {}).get(kind)
+        for key, r in rows.items():
             if "error" in r:
-                print(f"| {name} | n/a: {r['error']} | | | | | |")
+                print(f"| {r['name']} | n/a: {r['error']} | | | | | | |")
                 continue
-            rps = rate(r)
             prim = r["prim"][kind]
-            ref = raw["prim"][kind] if "prim" in raw else None
-            if ref is not None and len(prim) != len(ref):
-                ref = ref[strided(m, len(prim))]
-            same = "n/a" if ref is None else f"{100 * np.mean(prim == ref):.3f}"
-            print(f"| {name} | {med(r['builds']):#.3g} | {rps / 1e6:#.3g} | {_ratio(rps, base)} | {_ratio(rps, o3d_rate)}"
-                  f" | {100 * np.mean(prim >= 0):.1f} | {same} |")
-        if o3d_ok:
-            prim = o3d["prim"][kind]
-            same = "n/a" if "prim" not in raw else f"{100 * np.mean(prim == raw['prim'][kind]):.3f}"
-            print(f"| Open3D {o3d['open3d']} RaycastingScene.cast_rays (own venv, numpy {o3d['numpy']}) | {med(o3d['build_s']):#.3g}"
-                  f" | {o3d_rate / 1e6:#.3g} | {_ratio(o3d_rate, base)} | 1.00x | {100 * np.mean(prim >= 0):.1f} | {same} |")
-        else:
-            print(f"| Open3D RaycastingScene.cast_rays | {o3d} | | | | | |")
+            same = "n/a"
+            if ref is not None:
+                same = f"{100 * np.mean(prim == (ref if len(prim) == m else ref[strided(m, len(prim))])):.3f}"
+            rps = rate(key, kind)
+            print(f"| {r['name']} | {r['rays'][kind]:,} | {med(r['builds']):#.3g} | {rps / 1e6:#.3g} | {_ratio(rps, rate('raw', kind))}"
+                  f" | {_ratio(rps, rate('open3d', kind))} | {100 * np.mean(prim >= 0):.1f} | {same} |")
+    raw, o3d = rows.get("raw", {}), rows.get("open3d", {})
     if "splits" in raw:
         g = med(s[0] for s in raw["splits"])
         c = med(s[1] for s in raw["splits"])
         print(f"\nraw embreex build = geometry {g:.3f} s (embreex's mesh_construction.TriangleMesh copying the arrays) "
-              f"+ commit {c:.3f} s (Embree's BVH build)" + (f"; Open3D's whole build {med(o3d['build_s']):.3f} s." if o3d_ok else "."))
+              f"+ commit {c:.3f} s (Embree's BVH build)" + (f"; Open3D's whole build {med(o3d['builds']):.3f} s." if "builds" in o3d else "."))
 
 
-def engine_goals(scene, rows, o3d):
+def engine_goals(scene, rows):
     med = statistics.median
 
     def rate(key, kind):
@@ -1034,21 +1066,18 @@ def engine_goals(scene, rows, o3d):
     print("| ratio | random rays | camera rays | goal |")
     print("|---|--:|--:|---|")
     kinds = list(scene["rays"])
-    o3d_rate = {k: len(scene["rays"][k][0]) / med(o3d["trace_s"][k]) for k in kinds} if isinstance(o3d, dict) else {}
     lines = [
-        ("project Embree (defaults) / raw threaded embreex, trace", lambda k: _ratio(rate("embree", k), rate("raw", k)), ">= 0.85x"),
-        ("project Embree (defaults) / Open3D, trace", lambda k: _ratio(rate("embree", k), o3d_rate.get(k)), ">= 0.8x"),
-        ("project Embree, 2 threads / 1 thread", lambda k: _ratio(rate("embree", k), rate("embree1", k)), "reported (>= 1.7x)"),
-        ("raw embreex, pool / 1 thread", lambda k: _ratio(rate("raw", k), rate("raw1", k)), "reported"),
-        ("numpy BVH / BVHTree loop", lambda k: _ratio(rate("bvh", k), rate("bvhtree", k)), ">= 2x random, >= 1x camera"),
-        ("numpy grid / BVHTree loop", lambda k: _ratio(rate("grid", k), rate("bvhtree", k)), ">= 1x random"),
+        ("project Embree (defaults) / raw threaded embreex, trace", ("embree", "raw"), ">= 0.85x"),
+        ("project Embree (defaults) / Open3D, trace", ("embree", "open3d"), ">= 0.8x"),
+        ("project Embree, 2 threads / 1 thread", ("embree", "embree1"), "reported (>= 1.7x)"),
+        ("raw embreex, pool / 1 thread", ("raw", "raw1"), "reported"),
+        ("numpy BVH / BVHTree loop", ("bvh", "bvhtree"), ">= 2x random, >= 1x camera"),
+        ("numpy grid / BVHTree loop", ("grid", "bvhtree"), ">= 1x random"),
     ]
-    for label, f, goal in lines:
-        print(f"| {label} | {f(kinds[0])} | {f(kinds[1])} | {goal} |")
-    b = _ratio(build("embree"), build("raw"))
-    bo = _ratio(build("embree"), med(o3d["build_s"]) if isinstance(o3d, dict) else None)
-    print(f"| project Embree build / raw embreex build | {b} | | <= 1.3x |")
-    print(f"| project Embree build / Open3D build | {bo} | | reported |")
+    for label, (a, b), goal in lines:
+        print(f"| {label} | {' | '.join(_ratio(rate(a, k), rate(b, k)) for k in kinds)} | {goal} |")
+    print(f"| project Embree build / raw embreex build | {_ratio(build('embree'), build('raw'))} | | <= 1.3x |")
+    print(f"| project Embree build / Open3D build | {_ratio(build('embree'), build('open3d'))} | | reported |")
 
 
 def engines_main(args):
@@ -1062,24 +1091,21 @@ def engines_main(args):
     print(f"- date {datetime.datetime.now().isoformat(timespec='seconds')}; {os.cpu_count()} cores; load average at start "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print("- " + "; ".join(f"{k} {v}" for k, v in versions().items()))
-    print(f"- medians of {args.repeats} builds and {args.repeats} traces per tracer, traces interleaved round by round; "
-          f"M = {args.rays:,} rays per batch (seed {args.seed}); the BVHTree loop traces an evenly strided subset of "
-          f"{args.loop_rays:,}; Open3D runs in .venv-open3d as a subprocess on the same triangles and rays")
+    print(f"- medians of {args.repeats} builds and {args.repeats} traces per tracer, run round-robin (one of each "
+          f"tracer per round); M = {args.rays:,} rays per batch (seed {args.seed}); the numpy BVH and grid trace an "
+          f"evenly strided subset of {args.numpy_rays:,}, the BVHTree loop one of {args.loop_rays:,}; Open3D runs "
+          f"in .venv-open3d (scripts/bench_open3d.py) on the same triangles and rays, driven round by round")
     report = []
     for name in names:
         scene = engine_scene(name, args)
-        rows = engine_rows(scene, args)
         with tempfile.TemporaryDirectory(prefix="hrc-open3d-") as tmp:
-            o3d = run_open3d(scene, args, Path(tmp))
-        print_engine_tables(scene, rows, o3d)
-        engine_goals(scene, rows, o3d)
-        sys.stdout.flush()
-        report.append(dict(
-            scene=name, triangles=scene["mesh"].triangle_count, load_average_end=os.getloadavg(),
-            rows={k: {f: v for f, v in r.items() if f != "prim"} for k, r in rows.items()},
-            open3d=({f: v for f, v in o3d.items() if f != "prim"} if isinstance(o3d, dict) else o3d),
-        ))
+            rows = engine_rows(scene, args, Path(tmp))
+        print_engine_tables(scene, rows)
+        engine_goals(scene, rows)
         print(f"\nload average at the end of {name}: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        sys.stdout.flush()
+        report.append(dict(scene=name, triangles=scene["mesh"].triangle_count, load_average_end=os.getloadavg(),
+                           rows={k: {f: v for f, v in r.items() if f != "prim"} for k, r in rows.items()}))
     return report
 
 
@@ -1165,6 +1191,7 @@ def main(argv=None) -> int:
                          "loop and Open3D on --scenes with --rays (default 1M) random and camera rays")
     ap.add_argument("--scenes", default=",".join(ENGINE_SCENES), help="scenes of the engine table")
     ap.add_argument("--loop-rays", type=int, default=200_000, help="rays the BVHTree loop traces in the engine table")
+    ap.add_argument("--numpy-rays", type=int, default=262_144, help="rays the numpy BVH and grid trace in the engine table")
     ap.add_argument("--scale", help="instead: build and trace embree, bvh and grid once on Suzanne (level 5) instanced "
                                     "to about this many triangles (e.g. 10m), with peak memory; --rays (default 1M)")
     args = ap.parse_args(argv)
