@@ -22,7 +22,7 @@ this wrapper does about it:
   as given over [0, tmax] (the fast path: no copy, no float64); only when such a ray hits
   at exactly t = 0 is it traced again as below.  For tmin > 0 we move the
   origin to ``o + tmin * d`` (in float64, rounded to float32, so the ray the structure
-  sees differs from the caller's by up to an ulp of the origin) and tracing over
+  sees differs from the caller's by up to an ulp of the origin) and trace over
   (0, tmax - tmin]; a hit at exactly the start (t' = 0) is traced again from a start a
   few ulps further on (at most ``_RESTARTS`` times; after that the ray reports a miss).
   Both Embree's tfar and ours are inclusive.  A negative tmin is treated as 0: Embree
@@ -34,9 +34,10 @@ this wrapper does about it:
   used), any device config (``rtcNewDevice(NULL)``: Embree's own build threads are all
   hardware threads), scene flags other than ROBUST, shared (zero-copy) buffers and
   packet or stream queries.  Its ``mesh_construction.TriangleMesh`` copies the arrays
-  into Embree's buffers element by element through untyped (Python-level) indexing;
-  the indexed form (vertices + triangle indices) needs fewer such reads than the flat
-  (T, 3, 3) form, so it is the one used here.
+  into Embree's buffers element by element through untyped (Python-level) indexing
+  (``_build_from_indices`` / ``_build_from_flat``), which costs more than Embree's own
+  BVH build (BENCHMARKS.md); the indexed form (vertices + triangle indices: 3V + 6T
+  reads) needs fewer of them than the flat (T, 3, 3) form (9T), so it is the one used.
 
 Triangles that are degenerate (zero area in float64, ``TriangleMesh.valid``) are not
 given to Embree, and Embree's primID is mapped back to the mesh's triangle index.
