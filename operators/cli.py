@@ -12,12 +12,16 @@ Commands
                analysis, so the JSON holds both; ``--output`` gets the pass PNGs
     calibrate  measure this machine's constants (``--scale``) and save them
     report     the last analysis stored in the .blend (re-analyzed when missing or stale)
+    export     one scene file per frame (``--frames 1-250 --output DIR``: DIR/frame_0001.npz, ...)
+               for tracing without Blender (``core.load_mesh``, ``core.distributed``);
+               a progress line per frame on stderr
 
 Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-`` for
 stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
 given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``,
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
-NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``.
+NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
+``--frames 1-250`` (export).
 The .blend itself is never saved.
 
 Exit codes (one line on stderr says why):
@@ -48,7 +52,7 @@ from .jobs import BadInput, HRCError, Job, Unwritable, run_sync
 from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
-COMMANDS = ("analyze", "trace", "calibrate", "report")
+COMMANDS = ("analyze", "trace", "calibrate", "report", "export")
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_ARGS, EXIT_NO_GEOMETRY, EXIT_UNWRITABLE, EXIT_INVALID_GEOMETRY, EXIT_NOTHING_TO_TRACE = range(7)
 PLOT_PNG = "hybrid_raycast_plot.png"
 JSON_NAME = "hybrid_raycast_{command}.json"
@@ -101,6 +105,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
     p.add_argument("--calibration", help="the calibration file to read and write")
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="quick", help="calibrate: how much to measure")
+    p.add_argument("--frames", help="export: N, A-B or a list of them, e.g. 1-250 (default: the scene's frame range)")
     return p
 
 
@@ -121,7 +126,7 @@ def main(argv, stdout=None, stderr=None) -> int:
             return e.status
         if args.calibration:
             calibrate_mod.CALIBRATION_PATH = args.calibration
-        return _run(args, stdout)
+        return _run(args, stdout, stderr)
     except HRCError as e:
         print(f"{' '.join(filter(None, (COMMAND, command)))}: error: {e}", file=stderr, flush=True)
         return e.code
@@ -222,7 +227,25 @@ def _write_plot(props, out_dir: Path) -> str:
         raise Unwritable(f"unwritable path: {out_dir / PLOT_PNG}: {e.strerror or e}") from None
 
 
-def _run(args, stdout) -> int:
+def _export(args, out_dir, stdout, stderr) -> dict:
+    from .export import export_frames, parse_frames
+
+    if out_dir is None:
+        raise BadInput("bad arguments: export needs --output DIR (the folder for the scene files)")
+    scene = _scene(args)
+    frames = parse_frames(args.frames) if args.frames else list(range(scene.frame_start, scene.frame_end + 1))
+
+    def progress(done, total, rec):
+        print(f"{COMMAND} export: frame {rec['frame']} ({done}/{total}): {rec['triangles']:,} triangles -> {rec['path']}",
+              file=stderr, flush=True)
+
+    files = export_frames(scene, frames, out_dir, view_layer=_view_layer(scene), selected_only=args.selected_only,
+                          progress=progress)
+    print(f"{COMMAND} export: wrote {len(files)} scene files to {out_dir}", file=stdout, flush=True)
+    return {"command": "export", "scene": scene.name, "output": str(out_dir), "files": files}
+
+
+def _run(args, stdout, stderr=sys.stderr) -> int:
     out_dir = _writable_dir(Path(args.output), "--output") if args.output else None
     json_path = _json_target(args)
     if args.command == "calibrate":
@@ -232,6 +255,8 @@ def _run(args, stdout) -> int:
         _say(stdout, apply_calibration(None, result))
         cal = result["calibration"]
         doc = {"command": "calibrate", "path": str(result["path"]), "calibration": cal.to_dict()}
+    elif args.command == "export":
+        doc = _export(args, out_dir, stdout, stderr)
     else:
         scene = _scene(args)
         props = scene.hybrid_raycast
