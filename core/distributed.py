@@ -24,6 +24,7 @@ saying what to install (``pip install hybrid_raycast[dask]``).
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,6 +83,8 @@ class _StructureCache:
         self.building: dict = {}
         self.builds: Counter = Counter()
         self.blocks: Counter = Counter()
+        #: seconds per (scene label, kind): building, tracing (wall), tracing (this thread's CPU)
+        self.seconds: dict = {"build": Counter(), "trace": Counter(), "trace_cpu": Counter()}
 
     def _cached(self, key):
         with self.lock:
@@ -105,30 +108,43 @@ class _StructureCache:
                 with self.lock:
                     self.entries[key] = acc
                     self.builds[(scene.label(), kind)] += 1
+                    self.seconds["build"][(scene.label(), kind)] += acc.build_time
                     while len(self.entries) > self.size:
                         self.entries.popitem(last=False)
                     self.building.pop(key, None)
         return acc
 
-    def stats(self) -> dict:
+    def traced(self, scene: SceneRef, kind: str, wall: float, cpu: float):
+        key = (scene.label(), kind)
         with self.lock:
-            return {"builds": {f"{s}:{k}": n for (s, k), n in self.builds.items()},
-                    "blocks": {f"{s}:{k}": n for (s, k), n in self.blocks.items()},
+            self.blocks[key] += 1
+            self.seconds["trace"][key] += wall
+            self.seconds["trace_cpu"][key] += cpu
+
+    def stats(self) -> dict:
+        def named(counter):
+            return {f"{s}:{k}": n for (s, k), n in counter.items()}
+
+        with self.lock:
+            return {"builds": named(self.builds), "blocks": named(self.blocks),
+                    **{f"{what}_s": named(c) for what, c in self.seconds.items()},
                     "cached": [f"{Path(p).name}@{d[:12]}:{k}" for p, d, k, _ in self.entries]}
 
     def clear(self):
         with self.lock:
             self.entries.clear()
-            self.builds.clear()
-            self.blocks.clear()
+            for c in (self.builds, self.blocks, *self.seconds.values()):
+                c.clear()
 
 
 _CACHE = _StructureCache(CACHE_SIZE)
 
 
 def worker_stats() -> dict:
-    """This process's structure cache: builds and traced blocks per '<file>@<digest>:<kind>',
-    and what is cached.  On a cluster: ``client.run(core.distributed.worker_stats)``."""
+    """This process's structure cache, per '<file>@<digest>:<kind>': builds, traced blocks,
+    seconds spent building (build_s), tracing (trace_s) and this worker thread's CPU seconds
+    while tracing (trace_cpu_s: below trace_s when the machine is oversubscribed), and what
+    is cached.  On a cluster: ``client.run(core.distributed.worker_stats)``."""
     return _CACHE.stats()
 
 
@@ -139,9 +155,9 @@ def clear_worker_cache() -> None:
 
 def _trace_block(origins, directions, tmin, tmax, *, scene: SceneRef, kind: str, config: tuple):
     acc = _CACHE.get(scene, kind, config)
-    with _CACHE.lock:
-        _CACHE.blocks[(scene.label(), kind)] += 1
+    wall, cpu = time.perf_counter(), time.thread_time()
     hits = acc.trace(origins, directions, tmin, tmax)
+    _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)
     out = np.empty(len(hits), RESULT_DTYPE)
     out["t"], out["triangle"], out["u"], out["v"] = hits.t, hits.triangle, hits.u, hits.v
     obj = np.full(len(hits), -1, np.int32)

@@ -131,7 +131,9 @@ def test_trace_frames_traces_each_frame_in_its_own_scene(client, tmp_path):
     results = hd.trace_frames(paths, [b[2] for b in batches], [b[3] for b in batches], kind="grid")
     assert len(results) == 3
     for mesh, (o, d, _, _), r in zip(meshes, batches, results):
-        assert_same_as_local(gather(client, r), mesh, "grid", o, d)
+        got = r.compute()  # DistributedHits.compute: all five arrays through the default client
+        assert_same_as_local(got, mesh, "grid", o, d)
+        assert np.array_equal(r.hit.compute(), got["triangle"] >= 0)
     auto = hd.trace_frames(paths, [b[2] for b in batches], [b[3] for b in batches])
     assert auto[0].plan.expected_rays == 3_000 and len({r.kind for r in auto}) == 1, "one decision for every frame"
 
