@@ -228,11 +228,16 @@ def _config_key(kind: str, configs: dict | None, threads: int) -> tuple:
     return tuple(sorted(merged.items()))
 
 
-def _choose(scene: SceneRef, expected_rays, calibration, configs: dict | None):
-    """(kind, Plan): core.plan over the scene, once, on the client."""
+def _choose(scene: SceneRef, m: int, expected_rays, calibration, configs: dict | None):
+    """(kind, Plan): core.plan over the scene, once, on the client, for ``expected_rays``
+    (default ``m``, the rays given).  No rays and no budget: the grid, unplanned."""
     from .calibration import Calibration, load_or_default
     from .plan import plan
 
+    if expected_rays is None:
+        if m == 0:
+            return "grid", None
+        expected_rays = m
     cal = calibration if isinstance(calibration, Calibration) else load_or_default(calibration)[0]
     mesh = read_scene(scene.path, expect_digest=scene.digest).mesh
     p = plan(mesh, expected_rays, cal, grid_config=(configs or {}).get("grid"), configs=configs)
@@ -289,8 +294,7 @@ def trace(path, origins, directions, *, kind: str = "auto", tmin=0.0, tmax=np.in
     scene = SceneRef.of(path)
     plan = None
     if kind == "auto":
-        m = origins.shape[0]
-        kind, plan = _choose(scene, m if expected_rays is None else expected_rays, calibration, configs)
+        kind, plan = _choose(scene, origins.shape[0], expected_rays, calibration, configs)
     return _trace_scene(scene, origins, directions, kind, tmin, tmax, _config_key(kind, configs, threads), plan, da)
 
 
@@ -325,7 +329,6 @@ def trace_frames(paths, origins_list, directions_list, *, kind: str = "auto", tm
         return []
     plan = None
     if kind == "auto":
-        m = rays[0][0].shape[0]
-        kind, plan = _choose(scenes[0], m if expected_rays is None else expected_rays, calibration, configs)
+        kind, plan = _choose(scenes[0], rays[0][0].shape[0], expected_rays, calibration, configs)
     key = _config_key(kind, configs, threads)
     return [_trace_scene(s, o, d, kind, tmin, tmax, key, plan, da) for s, (o, d) in zip(scenes, rays)]

@@ -122,6 +122,8 @@ def test_auto_decides_once_on_the_client_and_workers_build_that_kind(client, tmp
     assert_same_as_local(got, mesh, r.kind, o, d)
     few = hd.trace(path, do, dd, kind="auto", expected_rays=10)
     assert few.plan.expected_rays == 10 and few.kind == "grid", "ten rays never pay for a BVH"
+    none = hd.trace(path, do[:0], dd[:0])
+    assert none.kind == "grid" and none.plan is None and gather(client, none)["t"].shape == (0,)
 
 
 def test_trace_frames_traces_each_frame_in_its_own_scene(client, tmp_path):
