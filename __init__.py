@@ -1,13 +1,14 @@
 """Hybrid Ray Cast: grid or BVH for the rays you are about to shoot (Blender extension).
 
 Layout: ``core/`` computes (pure numpy), ``operators/`` bridges Blender and core,
-``ui/`` only draws and calls; ``api.cast`` is the script interface.  ``register()``
+``ui/`` only draws and calls; ``settings.py`` (``scene.hybrid_raycast``) and ``budget.py``
+are what operators and ui share; ``api.cast`` is the script interface.  ``register()``
 walks one tuple of classes, then adds the scene property, the change handlers, the
 plot's preview collection and the ``-c hybrid_raycast`` command-line command.
 
 Importing the package needs no Blender: ``pip install .`` gives ``hybrid_raycast.core``
 in any Python with numpy (on Dask workers, for instance).  The Blender parts
-(``operators``, ``ui``, ``classes``) are imported when ``register()`` runs or when they
+(``operators``, ``settings``, ``ui``, ``classes``) are imported when ``register()`` runs or when they
 are first asked for, so bpy is imported only then.
 """
 
@@ -16,14 +17,14 @@ import importlib
 from . import api  # noqa: F401  (reachable as <package>.api; bpy is imported when api.cast runs)
 
 _cli_handle = None
-_BLENDER_PARTS = ("operators", "ui")
+_BLENDER_PARTS = ("operators", "settings", "ui")
 
 
 def _classes():
     """The one tuple of classes register() walks (imports the Blender parts, so bpy)."""
     global classes
     from . import operators, ui
-    from .ui.properties import HybridRaycastSettings
+    from .settings import HybridRaycastSettings
 
     classes = (HybridRaycastSettings, *operators.classes, *ui.classes)
     return classes
@@ -42,8 +43,8 @@ def register():
     import bpy
 
     from .operators import cli, state
+    from .settings import HybridRaycastSettings
     from .ui import plot
-    from .ui.properties import HybridRaycastSettings
 
     global _cli_handle
     for cls in _classes():
