@@ -78,6 +78,7 @@ def test_export_defaults_to_the_scene_frame_range(fresh, addon, tmp_path):
     (["export", "--frames", "3-1", "--output", "{tmp}"], 2, "runs backwards"),
     (["export", "--frames", "one", "--output", "{tmp}"], 2, "--frames 'one'"),
     (["export", "--frames", "1", "--output", "{tmp}/file/sub"], 4, "unwritable path"),
+    (["export", "--frames", "1", "--output", "{tmp}", "--save"], 2, "export changes no scene"),
 ])
 def test_export_argument_and_path_errors(fresh, addon, tmp_path, argv, code, words):
     add_cube("Cube")
