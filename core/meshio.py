@@ -10,6 +10,7 @@ Windows), so a reader sees the old file or the new one, never half of one.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import os
@@ -88,7 +89,7 @@ def save_mesh(mesh: TriangleMesh, path, *, frame: int | None = None) -> Path:
 
 
 def _missing(path: Path) -> FileNotFoundError:
-    return FileNotFoundError(2, f"no scene file at {path}", str(path))
+    return FileNotFoundError(errno.ENOENT, "no scene file", str(path))
 
 
 def _open(path: Path, source):
