@@ -106,6 +106,10 @@ def test_each_worker_builds_once_not_once_per_block(client, tmp_path):
     assert sum(blocks.values()) == 2 * 16, f"every block traced once per trace: {blocks}"
     assert all(builds[w] == 1 for w in seen if blocks[w]), f"one build per worker that traced: builds {builds}, blocks {blocks}"
     assert max(blocks.values()) > 1, f"some worker traced several blocks with its one structure: {blocks}"
+    for w, s in seen.items():
+        if blocks[w]:
+            wall, cpu = s["trace_s"][label], s["trace_cpu_s"][label]
+            assert s["build_s"][label] > 0 and 0 < cpu <= wall * 1.05 + 0.01, f"one thread's CPU within its wall time: {s}"
 
 
 def test_auto_decides_once_on_the_client_and_workers_build_that_kind(client, tmp_path):
