@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .accel import KINDS, build
+from .factory import KINDS, build
 from .meshio import check_scene, file_digest, read_scene
 
 #: one traced ray; a block of rays becomes one structured array, the public arrays are its fields
