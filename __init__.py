@@ -42,7 +42,7 @@ def __getattr__(name):
 def register():
     import bpy
 
-    from .operators import cli, state
+    from .operators import cli, session
     from .settings import HybridRaycastSettings
     from .ui import plot
 
@@ -50,7 +50,7 @@ def register():
     for cls in _classes():
         bpy.utils.register_class(cls)
     bpy.types.Scene.hybrid_raycast = bpy.props.PointerProperty(type=HybridRaycastSettings)
-    state.register()
+    session.register()
     plot.register()
     if _cli_handle is None and hasattr(bpy.utils, "register_cli_command"):
         _cli_handle = bpy.utils.register_cli_command(cli.COMMAND, cli.handler)
@@ -59,7 +59,7 @@ def register():
 def unregister():
     import bpy
 
-    from .operators import state
+    from .operators import session
     from .ui import plot
 
     global _cli_handle
@@ -67,7 +67,7 @@ def unregister():
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None
     plot.unregister()
-    state.unregister()
+    session.unregister()
     if hasattr(bpy.types.Scene, "hybrid_raycast"):
         del bpy.types.Scene.hybrid_raycast
     for cls in reversed(_classes()):

@@ -15,7 +15,8 @@ from .objio import load_obj
 from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, uniform_rays
 from .calibration import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
-from .plan import Plan, plan, trace_online
+from .plan import Plan, plan, ski_rental, trace_online
+from .multihit import all_hits
 from .scenes import calibration_set
 from . import distributed  # noqa: E402  (core.distributed; imports dask only when called)
 
@@ -24,6 +25,7 @@ __all__ = [
     "Accel",
     "Hits",
     "TriangleMesh",
+    "all_hits",
     "build",
     "Calibration",
     "CalibrationError",
@@ -33,6 +35,7 @@ __all__ = [
     "load_or_default",
     "measure_break_even",
     "plan",
+    "ski_rental",
     "trace_online",
     "camera_rays",
     "embree_available",
