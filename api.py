@@ -401,7 +401,15 @@ def cast_all(origins, directions, *, max_hits: int = 16, tmin=0.0, tmax=np.inf, 
                    objects=objects, object_names=names, instance_matrices=inst.matrices, structure=kind)
 
 
-# sensor scans (issue 13): api.scan(sensor_object, *, frame=None, space='WORLD'), in operators/scan.py
-from .operators.scan import ScanResult, scan  # noqa: E402
+# sensor scans (issue 13): the work is in operators/scan.py; imported when called, so that
+# importing the package needs no bpy
+def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None, structure="auto"):
+    """Scan the evaluated scene from ``sensor_object`` with its ``hybrid_raycast_sensor``
+    settings: points, normals, range, intensity, ring, azimuth, time, object_index with
+    objects, instance_index (``operators.scan.ScanResult``).  See ``operators.scan.scan``."""
+    from .operators.scan import scan as _scan
 
-__all__ += ["ScanResult", "scan"]
+    return _scan(sensor_object, frame=frame, space=space, depsgraph=depsgraph, structure=structure)
+
+
+__all__ += ["scan"]

@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .accel import Accel, build
+from .accel import Accel
+from .factory import build
 from .calibration import Calibration, _prepare, available_kinds, load_default, time_trace
 from .hits import Hits
 from .mesh import TriangleMesh
@@ -49,7 +50,6 @@ from .mesh import TriangleMesh
 DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
-DECISIONS = ("GRID", "BVH", "EMBREE")
 #: structures that answer every ray bit for bit like the grid: a plan that drew its samples
 #: from the workload keeps their answers when it chooses one of these
 REUSES_SAMPLES = ("grid", "bvh")
@@ -271,11 +271,6 @@ def _pick(x, sel, m):
     """A per-ray bound's entries at ``sel``; a scalar as it is."""
     x = np.asarray(x)
     return x[sel] if x.ndim == 1 and len(x) == m else x
-
-
-def trace_planned(plan: Plan, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
-    """``plan.trace(...)``: the workload through the structure the plan chose."""
-    return plan.trace(origins, directions, tmin, tmax)
 
 
 def plan_from_timings(
