@@ -6,7 +6,8 @@ The extension is enabled in the user preferences (installed with `-e`), which is
 registers the command.  Checks the exit codes (0, and 2-6 for each failure, with one
 line from the add-on on stderr; a missing or non-.blend file before -c and --rays inf
 exit 2), the JSON of every command, that ``--json -`` leaves nothing but the JSON on
-stdout, and that ``trace --workload ao --save`` writes the bake into the loaded file.  Writes
+stdout, that ``trace --workload ao --save`` writes the bake into the loaded file, and that
+``export`` writes a scene file per frame that numpy reads without pickle.  Writes
 real_blender_cli.json; exits 1 on the first failure.
 """
 
@@ -98,11 +99,36 @@ check("the saved .blend holds the AO bake", probe.is_file() and probe.read_text(
       probe.read_text() if probe.is_file() else "no probe output")
 check("no temporary save file is left", not (WORK / "ao.blend@").exists())
 
+code, out, err, p = blender("demo.blend", "export", "--frames", "1-2", "--output", str(WORK / "scenes"))
+check("export exits 0 with a progress line per frame on stderr",
+      code == 0 and sum(x.startswith("hybrid_raycast export: frame ") for x in err) == 2, f"rc={code} {err}")
+import numpy as np  # noqa: E402  (Debian's numpy 2.x: the scene file is plain .npz, read without pickle)
+
+for frame in (1, 2):
+    with np.load(WORK / "scenes" / f"frame_{frame:04d}.npz", allow_pickle=False) as z:
+        check(f"export frame {frame}: a scene file with the analyzed triangles",
+              str(z["format"]) == "hybrid_raycast.scene" and int(z["frame"]) == frame
+              and z["vertices"].dtype == np.float32 and len(z["triangles"]) == doc["summary"]["triangles"]
+              and len(z["object_index"]) == len(z["triangles"]), f"{len(z['triangles'])} triangles")
+
 code, out, err, p = blender(None, "calibrate", "--scale", "tiny", "--calibration", str(WORK / "cli_cal.json"))
 check("calibrate exits 0 and writes the file", code == 0 and (WORK / "cli_cal.json").is_file(), f"rc={code} {err}")
 
+# sensor scans (issue 13): the text object lying on the ground as a rotating LiDAR (the default
+# VLP-16 settings): its upper lasers see Suzanne and the ring of instances; LAS files
+scan_dir = WORK / "cli_out" / "scan"
+code, out, err, p = blender("demo.blend", "scan", "--sensor", "Title", "--frames", "1-2", "--output", str(scan_dir),
+                            "--format", "las")
+check("scan exits 0", code == 0, f"rc={code} {err} {p.stderr[-500:]}")
+las = sorted(scan_dir.glob("Title_*.las"))
+points = [int.from_bytes(f.read_bytes()[247:255], "little") for f in las]  # LAS 1.4 header: number of point records
+check("scan wrote one LAS 1.4 file per frame with points", [f.name for f in las] == ["Title_00001.las", "Title_00002.las"]
+      and all(f.read_bytes()[:4] == b"LASF" for f in las) and all(n > 500 for n in points), f"{las} {points}")
+
 (WORK / "notes.txt").write_text("not a .blend file\n")
 for name, blend, args, want, words in (
+    ("scan outside the frame range", "demo.blend", ["scan", "--sensor", "Title", "--frames", "1-999999",
+                                                    "--output", str(scan_dir)], 2, "outside the scene's frame range"),
     ("bad arguments", "demo.blend", ["analyze", "--rays", "0"], 2, "greater than 0"),
     ("infinite rays", "demo.blend", ["analyze", "--rays", "inf"], 2, "finite"),
     ("a missing file", "missing.blend", ["analyze"], 2, "no such file"),
