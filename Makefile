@@ -34,9 +34,10 @@ test: $(VENV)/.stamp wheels
 ## fresh clone reuses them and a changed pin makes a new one.
 MATRIX_LEGS  ?= bpy-4.2 bpy-4.5 bpy-5.3 no-embree
 MATRIX_CACHE ?= /var/cache/hybrid_raycast/venvs
+MATRIX_ARGS  ?=
 leg_venv = $(MATRIX_CACHE)/$(1)-$(shell cat requirements/$(1).txt requirements/test.txt | sha256sum | cut -c1-12)
 test-matrix: $(VENV)/.stamp wheels
-	$(PY) scripts/test_matrix.py --pytest-args="$(PYTEST_ARGS)" $(MATRIX_LEGS)
+	$(PY) scripts/test_matrix.py --pytest-args="$(PYTEST_ARGS)" $(MATRIX_ARGS) $(MATRIX_LEGS)
 
 ## One leg's venv (make matrix-venv LEG=bpy-4.2); prints its path.
 matrix-venv:
@@ -53,7 +54,6 @@ $(MATRIX_CACHE)/%/.stamp:
 	test -n "$$py" || { echo "matrix-venv: no working python$$v for $(LEG)" >&2; exit 1; }; \
 	echo "== making $(@D) with $$py"; \
 	rm -rf $(@D).tmp && mkdir -p $(MATRIX_CACHE) && "$$py" -m venv $(@D).tmp && \
-	$(@D).tmp/bin/python -m pip install -q --upgrade pip && \
 	$(@D).tmp/bin/python -m pip install -q -r requirements/$(LEG).txt && \
 	touch $(@D).tmp/.stamp && rm -rf $(@D) && mv $(@D).tmp $(@D)
 
