@@ -50,7 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .accel import Accel, build
+from .accel import Accel
+from .factory import build
 from .mesh import TriangleMesh
 
 #: bump when the JSON layout or the meaning of a field changes
@@ -70,8 +71,6 @@ SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
 #: the least number of rays the grid's large-workload time per ray is measured on when
 #: samples are timed (whatever the scale's rays per scene)
 GRID_LARGE_RAYS = 1 << 17
-#: structures whose per-scene times are recorded, and the ones whose constants are fitted
-RECORDED_ONLY = ("grid",)
 
 
 class CalibrationError(Exception):

@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .accel import Accel, build
+from .accel import Accel
+from .factory import build
 from .calibration import Calibration, _prepare, available_kinds, load_default, time_trace
 from .hits import Hits
 from .mesh import TriangleMesh
@@ -49,7 +50,6 @@ from .mesh import TriangleMesh
 DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
-DECISIONS = ("GRID", "BVH", "EMBREE")
 #: structures that answer every ray bit for bit like the grid: a plan that drew its samples
 #: from the workload keeps their answers when it chooses one of these
 REUSES_SAMPLES = ("grid", "bvh")
@@ -273,11 +273,6 @@ def _pick(x, sel, m):
     return x[sel] if x.ndim == 1 and len(x) == m else x
 
 
-def trace_planned(plan: Plan, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
-    """``plan.trace(...)``: the workload through the structure the plan chose."""
-    return plan.trace(origins, directions, tmin, tmax)
-
-
 def plan_from_timings(
     triangles: int,
     expected_rays,
@@ -481,6 +476,19 @@ class OnlineRecord:
         return d
 
 
+def ski_rental(grid_time: float, grid_rays: int, estimate) -> str:
+    """The online rule, given what the grid has spent so far: 'switch' once the grid's
+    accumulated trace time reaches the structure's estimated build time (Karlin et al.
+    1988: never worse than about twice the best fixed choice), 'never' when the estimate
+    is not faster per ray than the grid has measured (building could never pay),
+    'wait' otherwise.  ``estimate`` is a ``calibration.Estimate`` or None (no constants)."""
+    if estimate is None or grid_time < estimate.build:
+        return "wait" if estimate is not None else "never"
+    if grid_rays <= 0 or estimate.per_ray >= grid_time / grid_rays:
+        return "never"
+    return "switch"
+
+
 def trace_online(
     mesh: TriangleMesh,
     origins,
@@ -498,7 +506,7 @@ def trace_online(
     builder=build,
 ) -> tuple[Hits, OnlineRecord]:
     """Trace with the grid in batches; switch to ``kind`` once the grid's accumulated trace
-    time reaches ``kind``'s estimated build time (ski rental).  Needs no ray count.
+    time reaches ``kind``'s estimated build time (``ski_rental``).  Needs no ray count.
 
     It switches only while the estimate says ``kind`` is faster per ray than the grid has
     measured so far (else building it could never pay).  ``clock`` and ``builder`` are
@@ -538,10 +546,13 @@ def trace_online(
         put(grid.trace(o[done:b], d[done:b], per_ray(tmin, done, b), per_ray(tmax, done, b)), done, b)
         rec.grid_trace_time += clock() - c0
         done = b
-        if done < m and est is not None and rec.grid_trace_time >= rec.estimated_build_time:
-            if est.per_ray >= rec.grid_trace_time / done:
+        if done < m and est is not None:
+            rule = ski_rental(rec.grid_trace_time, done, est)
+            if rule == "never":
                 rec.note = f"{kind} would not be faster per ray than the grid: not switching"
                 est = None
+                continue
+            if rule == "wait":
                 continue
             c0 = clock()
             hds = builder(mesh, kind, **(config or {}))
