@@ -120,9 +120,16 @@ def reference_trace(tri_vertices, origins, directions, tmin=0.0, tmax=np.inf, pa
         # grazing: the ray's line passes within graze distance of an edge; tg is where
         gd, tg = _edge_distance(o[ri], d[ri], dn[ri], tv[ti])
         graze = gd <= GRAZE_EPS * np.maximum(tri_scale[ti], ray_scale[ri])
-        keep = hit | graze | par
+        # the ray crosses the triangle within float32 reach of tmin or tmax (the hit point is
+        # a relative TIE_RTOL of the scene's scale from the interval's end): whether float32
+        # arithmetic counts it inside the interval is a rounding matter, so the ray is ambiguous
+        scale = TIE_RTOL * np.maximum(tri_scale[ti], ray_scale[ri])
+        with np.errstate(invalid="ignore"):
+            at_end = (~par) & (marg >= 0) & (
+                (np.abs(t - lo[ri]) * dlen[ri] <= scale) | (np.abs(t - hi[ri]) * dlen[ri] <= scale))
+        keep = hit | graze | par | at_end
         parts.append((ri[keep], ti[keep], np.where(hit, t, np.inf)[keep], u[keep], v[keep],
-                      np.where(graze, tg, np.inf)[keep], par[keep]))
+                      np.where(graze, tg, np.inf)[keep], (par | at_end)[keep]))
 
     if not parts:
         return RefHits(out_t, out_tri, out_u, out_v, np.zeros(m, bool))
