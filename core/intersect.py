@@ -55,8 +55,10 @@ def _as_rays_array(a, name):
 
 def _per_ray(x, m, name):
     x = np.asarray(x, dtype=np.float64)
-    if x.ndim == 0:
-        x = np.full(m, x)
+    if x.ndim == 0:  # checked once, then broadcast: no (M,) float64 temporaries
+        if np.isnan(x):
+            raise ValueError(f"{name} contains NaN")
+        return np.broadcast_to(x, (m,))
     if x.shape != (m,):
         raise ValueError(f"{name} must be a scalar or shape ({m},), got {x.shape}")
     if np.isnan(x).any():
@@ -95,8 +97,9 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
     if (lo > hi).any():
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
+    lo, hi = lo.astype(F32), hi.astype(F32)  # a fresh (M,) array each, also from a broadcast scalar
     if not shear:
-        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), None, None, None, None)
+        return Rays(o32, d32, lo, hi, None, None, None, None)
     ad = np.abs(d32)
     # int8 axis indices: 3 bytes a ray instead of 24 (240 MB saved at 10M rays)
     kz = np.argmax(ad, axis=1).astype(np.int8)
@@ -112,7 +115,7 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
     sxyz[:, 1] = d32[rows, ky] / dz
     sxyz[:, 2] = F32(1.0) / dz
     with np.errstate(over="ignore"):
-        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), kx, ky, kz, sxyz)
+        return Rays(o32, d32, lo, hi, kx, ky, kz, sxyz)
 
 
 def _edge_functions(ax, ay, bx, by, cx, cy):
