@@ -399,3 +399,17 @@ def cast_all(origins, directions, *, max_hits: int = 16, tmin=0.0, tmax=np.inf, 
                    instance_index=mesh.instance_index[tri], polygon_index=mesh.polygon_index[tri], points=points,
                    normals=s.triangle_normals[tri], count=np.bincount(ray, minlength=call.m).astype(np.int32),
                    objects=objects, object_names=names, instance_matrices=inst.matrices, structure=kind)
+
+
+# sensor scans (issue 13): the work is in operators/scan.py; imported when called, so that
+# importing the package needs no bpy
+def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None, structure="auto"):
+    """Scan the evaluated scene from ``sensor_object`` with its ``hybrid_raycast_sensor``
+    settings: points, normals, range, intensity, ring, azimuth, time, object_index with
+    objects, instance_index (``operators.scan.ScanResult``).  See ``operators.scan.scan``."""
+    from .operators.scan import scan as _scan
+
+    return _scan(sensor_object, frame=frame, space=space, depsgraph=depsgraph, structure=structure)
+
+
+__all__ += ["scan"]
