@@ -6,24 +6,60 @@ VENV   := .venv
 O3D_VENV := .venv-open3d
 PY     := $(VENV)/bin/python
 BPYDIR  = $(shell $(PY) -c "import importlib.util as u, os; print(os.path.dirname(u.find_spec('bpy').origin))" 2>/dev/null)
-BLENDER_EXT = $(BPYDIR)/5.0/scripts/addons_core/bl_pkg/cli/blender_ext.py
-VALID_TAGS  = $(BPYDIR)/5.0/scripts/modules/_bpy_internal/extensions/tags.py
+# bpy keeps Blender's scripts in a folder named after its version (bpy/5.0/scripts, bpy/4.2/...).
+BPYVER  = $(notdir $(patsubst %/,%,$(dir $(firstword $(wildcard $(BPYDIR)/[0-9]*.[0-9]*/scripts)))))
+BLENDER_EXT = $(BPYDIR)/$(BPYVER)/scripts/addons_core/bl_pkg/cli/blender_ext.py
+VALID_TAGS  = $(BPYDIR)/$(BPYVER)/scripts/modules/_bpy_internal/extensions/tags.py
 WHEELS := $(shell sed -n 's|^ *"\./\(wheels/[^"]*\.whl\)",*|\1|p' blender_manifest.toml)
 VERSION := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
-ZIP    := dist/hybrid_raycast-$(VERSION).zip
+PLATFORMS := $(shell sed -n 's/^platforms = \[\(.*\)\]/\1/p' blender_manifest.toml | tr -d '",' | tr '-' '_')
+# One zip per platform of the manifest, named as blender_ext.py --split-platforms names them.
+ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
+# This machine's package (the real-Blender suite installs it).
+ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-fast real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-distributed bench-scan report clean
+.PHONY: demo test test-fast test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-distributed bench-scan report clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
 	$(PY) scripts/demo.py --output out/demo
 
 ## The tests (what CI runs).
+PYTEST_ARGS := -q -ra
 test: $(VENV)/.stamp wheels
-	$(PY) -m pytest -q -ra
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+## The version matrix: the same suite on each leg's bpy, in its own venv made from
+## requirements/<leg>.txt (its '# python: X.Y' line names the interpreter); prints a table.
+## The venvs are cached outside the clone, named by a hash of their requirement files, so a
+## fresh clone reuses them and a changed pin makes a new one.
+MATRIX_LEGS  ?= bpy-4.2 bpy-4.5 bpy-5.3 no-embree
+MATRIX_CACHE ?= /var/cache/hybrid_raycast/venvs
+MATRIX_ARGS  ?=
+leg_venv = $(MATRIX_CACHE)/$(1)-$(shell cat requirements/$(1).txt requirements/test.txt | sha256sum | cut -c1-12)
+test-matrix: $(VENV)/.stamp wheels
+	$(PY) scripts/test_matrix.py --pytest-args="$(PYTEST_ARGS)" $(MATRIX_ARGS) $(MATRIX_LEGS)
+
+## One leg's venv (make matrix-venv LEG=bpy-4.2); prints its path.
+matrix-venv:
+	@test -f "requirements/$(LEG).txt" || { echo "matrix-venv: LEG must be one of: $(MATRIX_LEGS)" >&2; exit 2; }
+	@$(MAKE) -s $(call leg_venv,$(LEG))/.stamp LEG=$(LEG) >&2
+	@echo $(call leg_venv,$(LEG))
+# No prerequisites: the hash in the folder's name stands for the requirement files (a fresh
+# clone's files are always newer than the cache). Built beside, then moved, so a half-made venv
+# is never taken for a finished one.
+$(MATRIX_CACHE)/%/.stamp:
+	@py=; v=$$(sed -n 's/^# python: *//p' requirements/$(LEG).txt); \
+	for c in python$$v $$(pyenv root 2>/dev/null)/versions/$$v*/bin/python$$v; do \
+	  "$$c" -c '' 2>/dev/null && { py=$$c; break; }; done; \
+	test -n "$$py" || { echo "matrix-venv: no working python$$v for $(LEG)" >&2; exit 1; }; \
+	echo "== making $(@D) with $$py"; \
+	rm -rf $(@D).tmp && mkdir -p $(MATRIX_CACHE) && "$$py" -m venv $(@D).tmp && \
+	$(@D).tmp/bin/python -m pip install -q -r requirements/$(LEG).txt && \
+	touch $(@D).tmp/.stamp && rm -rf $(@D) && mv $(@D).tmp $(@D)
 
 ## The real-Blender suite: Blender 4.3.2 (Debian trixie rootfs), CLI and GUI; needs root, skips otherwise.
-real-blender: $(ZIP)
+real-blender: $(ZIPS)
 	tests/real_blender/run.sh $(ZIP) out/real_blender
 
 ## The tests without the slower Blender install round-trip.
@@ -31,7 +67,7 @@ test-fast: $(VENV)/.stamp
 	$(PY) -m pytest -q -ra -m "not slow"
 
 venv: $(VENV)/.stamp
-$(VENV)/.stamp: requirements-dev.txt
+$(VENV)/.stamp: requirements-dev.txt requirements/test.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -r requirements-dev.txt
@@ -47,11 +83,12 @@ wheels/%.whl: | $(VENV)/.stamp
 validate: $(VENV)/.stamp wheels
 	$(PY) $(BLENDER_EXT) validate --valid-tags $(VALID_TAGS) .
 
-## The installable zip, built by Blender's own tool (no tests inside).
-extension: $(ZIP)
-$(ZIP): $(VENV)/.stamp wheels $(shell git ls-files '*.py' '*.toml' 2>/dev/null)
+## The installable zips, one per platform, built by Blender's own tool (no tests inside).
+extension: $(ZIPS)
+	@ls -l $(ZIPS)
+$(ZIPS) &: $(VENV)/.stamp wheels $(shell git ls-files '*.py' '*.toml' 2>/dev/null)
 	@mkdir -p dist
-	$(PY) $(BLENDER_EXT) build --valid-tags $(VALID_TAGS) --source-dir . --output-filepath $@
+	$(PY) $(BLENDER_EXT) build --split-platforms --valid-tags $(VALID_TAGS) --source-dir . --output-dir dist
 
 bench-extract: $(VENV)/.stamp
 	$(PY) scripts/bench_extract.py

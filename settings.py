@@ -264,6 +264,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     bvh_per_ray: _time("BVH per Ray (est.)", "Estimated BVH time per ray, a_R + c_R log2 N (affine model)")
     embree_considered: BoolProperty(name="Embree Considered", description="Embree was a candidate, importable, with calibration constants")
     embree_available: BoolProperty(name="Embree Available", description="embreex could be imported at the analysis")
+    embree_unavailable: StringProperty(name="Embree Unavailable", description="Why Embree could not be used at the analysis (empty when it could)")
     embree_build_time: _time("Embree Build (est.)", "Estimated Embree build time, a_B + c_B N log2 N (affine model)")
     embree_per_ray: _time("Embree per Ray (est.)", "Estimated Embree time per ray, a_R + c_R log2 N (affine model)")
     analyzed_at: StringProperty(name="Analyzed At", description="When the analysis ran (local time, ISO 8601)")

@@ -39,22 +39,24 @@ from __future__ import annotations
 import numpy as np
 
 from .accel import Accel
-from .intersect import NearestHits, Rays, intersect
+from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F32 = np.float32
 WIDTH = 4
-EPS32 = 2.0**-24  # float32 unit roundoff
 
 
 def gamma(n: int) -> float:
-    """pbrt's error bound gamma(n) = n*eps / (1 - n*eps) for n float32 roundings."""
-    return n * EPS32 / (1 - n * EPS32)
+    """pbrt's error bound gamma(n) = n*u / (1 - n*u) for n float32 roundings (u: ``UNIT_ROUNDOFF``)."""
+    return n * UNIT_ROUNDOFF / (1 - n * UNIT_ROUNDOFF)
 
 
 #: Ize 2013: exit distances (and the best-hit bound) widened by 1 + 2*gamma(3).
 WIDEN = F32(1 + 2 * gamma(3))
 MISS = np.uint64(0xFFFFFFFFFFFFFFFF)
 LOW32 = np.uint64(0xFFFFFFFF)
+#: rays per block of the traversal's transpose of gathered node boxes (24 floats a ray:
+#: 192 KiB a block, within a core's L2 cache)
+_TRANSPOSE_BLOCK = 2048
 SAH_SAMPLE = 1024  # bin a bigger node from this many of its triangles
 SMALL_BINS = 4  # bins for nodes of at most 8 * SMALL_BINS triangles
 BUILDERS = ("hlbvh", "sah", "morton", "median")
@@ -410,7 +412,8 @@ class BVH(Accel):
       ``cluster_bits=6``: "hlbvh" grid of 2**cluster_bits cells per axis;
       ``sah_min=0``: nodes of at most this many triangles split at the highest differing
       Morton bit instead of by SAH (faster build, more node visits per ray);
-      ``batch=8192``: rays stepping in lockstep per chunk (bounds the working set);
+      ``batch=32768``: rays stepping in lockstep per chunk (bounds the working set; bigger
+      pools amortise the per-step numpy calls: BENCHMARKS.md, issue 10);
       plus ``threads`` and ``chunk_size`` (default 65536 rays) of every structure.
 
     Layout (read by tests and the cost model): ``node_boxes`` (W, 24) float32 per wide node
@@ -424,7 +427,7 @@ class BVH(Accel):
     chunk_size = 1 << 16
 
     def __init__(self, mesh, *, builder: str = "hlbvh", leaf_size: int = 4, sah_bins: int = 16, cluster_bits: int = 6,
-                 sah_min: int = 0, batch: int = 8192, **kw):
+                 sah_min: int = 0, batch: int = 32768, **kw):
         if builder not in BUILDERS:
             raise ValueError(f"unknown BVH builder {builder!r}; expected one of {', '.join(BUILDERS)}")
         self.builder = builder
@@ -513,24 +516,29 @@ class BVH(Accel):
         rid = np.empty(P, np.intp)
         cur = np.zeros(P, np.intp)  # the wide node each ray visits this step
         ptr = np.zeros(P, np.intp)  # next free stack slot, flat: depth * P + pool column
-        org = np.empty((P, 2, 3, WIDTH), F32)  # origin and 1/direction laid out like a node's boxes
-        inv = np.empty((P, 2, 3, WIDTH), F32)
+        org = np.empty((3, P), F32)  # origin and 1/direction, one row per axis
+        inv = np.empty((3, P), F32)
         tmin = np.empty(P, F32)
         tlim = np.empty(P, F32)  # min(tmax, best hit so far); -inf once the ray is finished
         dead = np.zeros(P, bool)
         stack = np.empty((D, P), np.uint64)  # (depth, rays): pushes of neighbouring rays stay close
         sflat = stack.reshape(-1)
-        # workspace, reused every step (fresh large temporaries cost page faults)
-        w_t = np.empty((P, 6 * WIDTH), F32)
-        w_near = np.empty((P, 3, WIDTH), F32)
-        w_far = np.empty((P, 3, WIDTH), F32)
-        w_tn = np.empty((P, WIDTH), F32)
-        w_tf = np.empty((P, WIDTH), F32)
-        w_ch = np.empty((P, WIDTH), np.int32)
-        w_hit = np.empty((P, WIDTH), bool)
-        w_leaf = np.empty((P, WIDTH), bool)
-        w_mask = np.empty((P, WIDTH), bool)
-        w_key = np.empty((P, WIDTH), np.uint64)
+        # workspace, reused every step (fresh large temporaries cost page faults).  The node
+        # boxes are gathered one row per ray (one cache line per node) and then transposed
+        # once, so every later operation runs along the rays: long contiguous inner loops
+        # instead of rows of four children.
+        w_g = np.empty((P, 6 * WIDTH), F32)
+        w_t = np.empty(6 * WIDTH * P, F32)
+        w_near = np.empty(3 * WIDTH * P, F32)
+        w_far = np.empty(3 * WIDTH * P, F32)
+        w_tn = np.empty(WIDTH * P, F32)
+        w_tf = np.empty(WIDTH * P, F32)
+        w_cg = np.empty((P, WIDTH), np.int32)
+        w_ch = np.empty(WIDTH * P, np.int32)
+        w_hit = np.empty(WIDTH * P, bool)
+        w_leaf = np.empty(WIDTH * P, bool)
+        w_mask = np.empty(WIDTH * P, bool)
+        w_key = np.empty(WIDTH * P, np.uint64)
         w_lim = np.empty(P, F32)
         w_flag = np.empty(P, bool)
         cols = np.arange(P)
@@ -546,8 +554,8 @@ class BVH(Accel):
                     n = len(keep)
                     for arr in (rid, cur, tmin, tlim):
                         arr[:n] = arr.take(keep)
-                    org[:n] = org.take(keep, axis=0)
-                    inv[:n] = inv.take(keep, axis=0)
+                    org[:, :n] = org[:, :A].take(keep, axis=1)
+                    inv[:, :n] = inv[:, :A].take(keep, axis=1)
                     ptr[:n] = ptr.take(keep) - keep + cols[:n]
                     top = int(ptr[:n].max()) // P if n else 0
                     if top:
@@ -559,8 +567,8 @@ class BVH(Accel):
                     rid[sl] = np.arange(nxt, nxt + k)
                     cur[sl] = 0
                     ptr[sl] = cols[sl]
-                    org[sl] = rays.origins[new][:, None, :, None]
-                    inv[sl] = inv_all[new][:, None, :, None]
+                    org[:, sl] = rays.origins[new].T
+                    inv[:, sl] = inv_all[new].T
                     tmin[sl] = rays.tmin[new]
                     tlim[sl] = rays.tmax[new]
                     A, nxt = A + k, nxt + k
@@ -569,28 +577,33 @@ class BVH(Accel):
                     break
             steps += 1
             visits += A - ndead
-            # slab test of the four children (Ize 2013), all rays at once
-            t = box.take(cur[:A], axis=0, out=w_t[:A], mode="clip").reshape(A, 2, 3, WIDTH)
-            np.subtract(t, org[:A], out=t)
-            np.multiply(t, inv[:A], out=t)
-            near = np.minimum(t[:, 0], t[:, 1], out=w_near[:A])  # a NaN (0*inf) stays in its axis ...
-            far = np.maximum(t[:, 0], t[:, 1], out=w_far[:A])
-            tn = np.fmax(near[:, 0], near[:, 1], out=w_tn[:A])  # ... and fmax/fmin skip it
-            np.fmax(tn, near[:, 2], out=tn)
-            tf = np.fmin(far[:, 0], far[:, 1], out=w_tf[:A])
-            np.fmin(tf, far[:, 2], out=tf)
-            np.maximum(tn, tmin[:A, None], out=tn)
+            # slab test of the four children (Ize 2013), all rays at once, as (.., child, ray)
+            g = box.take(cur[:A], axis=0, out=w_g[:A], mode="clip")
+            t = w_t[: 6 * WIDTH * A].reshape(2, 3, WIDTH, A)
+            t2 = t.reshape(6 * WIDTH, A)
+            for b in range(0, A, _TRANSPOSE_BLOCK):  # blocks that stay in cache while transposed
+                np.copyto(t2[:, b : b + _TRANSPOSE_BLOCK], g[b : b + _TRANSPOSE_BLOCK].T)
+            np.subtract(t, org[None, :, None, :A], out=t)
+            np.multiply(t, inv[None, :, None, :A], out=t)
+            near = np.minimum(t[0], t[1], out=w_near[: 3 * WIDTH * A].reshape(3, WIDTH, A))  # a NaN (0*inf) stays in its axis ...
+            far = np.maximum(t[0], t[1], out=w_far[: 3 * WIDTH * A].reshape(3, WIDTH, A))
+            tn = np.fmax(near[0], near[1], out=w_tn[: WIDTH * A].reshape(WIDTH, A))  # ... and fmax/fmin skip it
+            np.fmax(tn, near[2], out=tn)
+            tf = np.fmin(far[0], far[1], out=w_tf[: WIDTH * A].reshape(WIDTH, A))
+            np.fmin(tf, far[2], out=tf)
+            np.maximum(tn, tmin[None, :A], out=tn)
             widen(tf, tf)
-            np.minimum(tf, widen(tlim[:A], w_lim[:A])[:, None], out=tf)
-            hit = np.less_equal(tn, tf, out=w_hit[:A])
-            ch = child.take(cur[:A], axis=0, out=w_ch[:A], mode="clip")
-            isleaf = np.less(ch, 0, out=w_leaf[:A])
+            np.minimum(tf, widen(tlim[:A], w_lim[:A])[None, :], out=tf)
+            hit = np.less_equal(tn, tf, out=w_hit[: WIDTH * A].reshape(WIDTH, A))
+            ch = w_ch[: WIDTH * A].reshape(WIDTH, A)
+            np.copyto(ch, child.take(cur[:A], axis=0, out=w_cg[:A], mode="clip").T)
+            isleaf = np.less(ch, 0, out=w_leaf[: WIDTH * A].reshape(WIDTH, A))
             # leaf children: their triangles through the shared kernel, now
-            lh = np.flatnonzero(np.logical_and(hit, isleaf, out=w_mask[:A]))
+            lh = np.flatnonzero(np.logical_and(hit, isleaf, out=w_mask[: WIDTH * A].reshape(WIDTH, A)))
             if len(lh):
-                leaf = ~ch.ravel().take(lh)
+                leaf = ~ch.reshape(-1).take(lh)
                 cnt = leaf_count.take(leaf)
-                pa = np.repeat(lh >> 2, cnt)
+                pa = np.repeat(lh % A, cnt)
                 pos = np.arange(len(pa)) + np.repeat(leaf_start.take(leaf) - (np.cumsum(cnt) - cnt), cnt)
                 leaf_visits += len(lh)
                 pairs += len(pa)
@@ -606,12 +619,12 @@ class BVH(Accel):
                     dead[got] = True
                     tlim[got] = -np.inf
             # inner children sorted nearest first: key = entry distance bits << 32 | node
-            key = w_key[:A]
-            kv = key.view(np.uint32).reshape(A, WIDTH, 2)
+            key = w_key[: WIDTH * A].reshape(WIDTH, A)
+            kv = key.view(np.uint32).reshape(WIDTH, A, 2)
             kv[:, :, 1] = tn.view(np.uint32)
             kv[:, :, 0] = ch.view(np.uint32)
-            np.copyto(key, MISS, where=~np.logical_and(hit, ~isleaf, out=w_mask[:A]))
-            k0, k1, k2, k3 = _sort4(key[:, 0], key[:, 1], key[:, 2], key[:, 3])
+            np.copyto(key, MISS, where=~np.logical_and(hit, ~isleaf, out=w_mask[: WIDTH * A].reshape(WIDTH, A)))
+            k0, k1, k2, k3 = _sort4(key[0], key[1], key[2], key[3])
             # the nearest is visited next, the others pushed, farthest first
             pa_ = ptr[:A]
             for k in (k3, k2, k1):

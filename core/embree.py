@@ -66,6 +66,37 @@ def embree_available() -> bool:
         return False
 
 
+#: (system, machine) pairs and Python versions embreex 4.4.0.post1 has wheels for (PyPI's file
+#: list; the manifest bundles the linux-x64 and windows-x64 ones, for Blender's Pythons).
+_WHEEL_PLATFORMS = {("linux", "x86_64"): "Linux x64", ("windows", "amd64"): "Windows x64"}
+_WHEEL_PYTHONS = ((3, 11), (3, 13))
+_SYSTEM_NAMES = {"darwin": "macOS", "linux": "Linux", "windows": "Windows"}
+_MACHINE_NAMES = {"x86_64": "x64", "amd64": "x64", "arm64": "arm64", "aarch64": "arm64"}
+
+
+def embree_unavailable_reason(system: str | None = None, machine: str | None = None,
+                              python: tuple[int, int] | None = None) -> str | None:
+    """Why the 'embree' structure cannot be built here, in words for the user; None when it can.
+
+    ``system``, ``machine`` and ``python`` default to this interpreter's (``platform.system()``,
+    ``platform.machine()``, ``sys.version_info[:2]``).
+    """
+    if embree_available():
+        return None
+    import platform
+    import sys
+
+    system = (system or platform.system()).lower()
+    machine = (machine or platform.machine()).lower()
+    python = tuple(python or sys.version_info[:2])
+    if (system, machine) not in _WHEEL_PLATFORMS:
+        where = f"{_SYSTEM_NAMES.get(system, system)} {_MACHINE_NAMES.get(machine, machine)}"
+        return f"embreex has no wheel for {where}"
+    if python not in _WHEEL_PYTHONS:
+        return f"embreex has no wheel for Python {python[0]}.{python[1]}"
+    return "embreex is not installed"
+
+
 def _import_embreex():
     try:
         from embreex import mesh_construction, rtcore_scene

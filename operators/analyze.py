@@ -36,10 +36,12 @@ def candidate_kinds(props) -> tuple[tuple[str, ...], list[str]]:
     if "BVH" in props.candidates:
         kinds.append("bvh")
     if "EMBREE" in props.candidates:
-        if core.embree.embree_available():
+        reason = core.embree.embree_unavailable_reason()
+        if reason is None:
             kinds.append("embree")
         else:
-            notes.append("Embree skipped: embreex cannot be imported here; deciding without it")
+            rest = "between the grid and the BVH" if "bvh" in kinds else "on the grid alone"
+            notes.append(f"Embree unavailable: {reason}; deciding {rest}")
     return tuple(kinds), notes
 
 
@@ -64,6 +66,7 @@ def analysis_record(scene, summary, budget, settings, calibration_info, plan, *,
         "settings": settings,
         "calibration": calibration_info,
         "embree_available": bool(embree_ok),
+        "embree_unavailable": None if embree_ok else core.embree.embree_unavailable_reason(),
         "decision": plan.decision,
         "certain": plan.certain,
         "expected_rays": plan.expected_rays,
@@ -108,6 +111,7 @@ def store_results(props, record):
         setattr(props, f"{kind}_build_time", c["build_time"] if c else 0.0)
         setattr(props, f"{kind}_per_ray", c["per_ray"] if c else 0.0)
     props.embree_available = record["embree_available"]
+    props.embree_unavailable = record.get("embree_unavailable") or ""
     props.analyzed_at = record["analyzed_at"]
     props.analysis_duration = record["analysis_seconds"]
     props.calibration_source = record["calibration"]["source"]

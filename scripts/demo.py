@@ -77,4 +77,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from _bpy_exit import exit_past_bpy
+
+    code = main()
+    exit_past_bpy(code)
+    sys.exit(code)

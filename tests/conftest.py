@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT.parent / "shared" / "scenes"
 sys.path.insert(0, str(ROOT / "scripts"))
 
+from _bpy_exit import exit_past_bpy  # noqa: E402
 from _package import core_package, load_addon  # noqa: E402,F401  (load_addon is for Blender tests)
 
 core_package()
@@ -35,3 +36,19 @@ def scenes_dir():
 def pytest_configure(config):
     config.addinivalue_line("markers", "blender: needs bpy (Blender as a Python module)")
     config.addinivalue_line("markers", "slow: takes more than a few seconds")
+
+
+# bpy's exit bugs (scripts/_bpy_exit.py): leave right after pytest's last hook, when its
+# summary is written, with pytest's own exit status, so a failure still exits non-zero.
+_session = None
+
+
+def pytest_sessionstart(session):
+    global _session
+    _session = session
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    if _session is not None:
+        exit_past_bpy(_session.exitstatus)

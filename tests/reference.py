@@ -220,8 +220,9 @@ def kind_missing_reason(kind):
     """
     from hybrid_raycast import core
 
-    if kind == "embree" and not core.embree_available():
-        return "embreex is not installed"
+    if kind == "embree":
+        why = core.embree.embree_unavailable_reason()
+        return f"the 'embree' structure is unavailable here: {why}" if why else None
     return None
 
 

@@ -204,6 +204,20 @@ def test_bvh_returns_exactly_the_brute_force_hits_and_occlusion(config, name):
         assert not len(bad), f"{what}: occluded differs from brute force on {len(bad)} rays, first {bad[:5]} (bvh says {occ[bad[:5]]})"
 
 
+@pytest.mark.parametrize("name", ["soup", "flat"])
+def test_pools_of_many_transpose_blocks_return_the_brute_force_hits(name, monkeypatch):
+    """The traversal transposes the gathered node boxes in blocks of rays; blocks of 7 over
+    a pool of 1,200 rays end in a partial block, and every block must land in its columns."""
+    from hybrid_raycast.core import bvh as bvh_module
+
+    monkeypatch.setattr(bvh_module, "_TRANSPOSE_BLOCK", 7)
+    o, d, tmin, tmax = rays(name)
+    want, want_occ = brute(name)
+    bvh = core.build(scene(name), "bvh")
+    _assert_same_hits(bvh.trace(o, d, tmin, tmax), want, f"{name}, transpose blocks of 7")
+    assert np.array_equal(bvh.occluded(o, d, tmin, tmax), want_occ), f"{name}: occluded differs with blocks of 7"
+
+
 def test_ties_between_identical_triangles_go_to_the_lowest_index():
     mesh = scene("identical")  # triangle 3k, 3k+1, 3k+2 are the same
     o = np.random.default_rng(0).normal(0, 0.05, (500, 3))

@@ -56,6 +56,21 @@ def test_embree_available_agrees_with_importability():
     assert core.embree_available() == importable
 
 
+def test_embree_unavailable_reason_names_the_platform_without_a_wheel(monkeypatch):
+    from hybrid_raycast.core import embree
+
+    assert (embree.embree_unavailable_reason() is None) == core.embree_available()
+    monkeypatch.setattr(embree, "embree_available", lambda: False)
+    why = embree.embree_unavailable_reason
+    assert why("Darwin", "arm64", (3, 11)) == "embreex has no wheel for macOS arm64"
+    assert why("Darwin", "x86_64", (3, 13)) == "embreex has no wheel for macOS x64"
+    assert why("Linux", "aarch64", (3, 11)) == "embreex has no wheel for Linux arm64"
+    assert why("Windows", "ARM64", (3, 13)) == "embreex has no wheel for Windows arm64"
+    assert why("Linux", "x86_64", (3, 12)) == "embreex has no wheel for Python 3.12"
+    # where a wheel exists (the packages for linux-x64 and windows-x64 carry it), only its absence is left
+    assert why("Linux", "x86_64", (3, 11)) == why("Windows", "AMD64", (3, 13)) == "embreex is not installed"
+
+
 @needs_embree
 def test_embree_maps_primitive_ids_back_past_degenerate_triangles():
     mesh = _layers()

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hybrid_raycast import core
-from hybrid_raycast.core.grid import UniformGrid, grid_resolution
+from hybrid_raycast.core.grid import UniformGrid, empty_radius, grid_resolution
 
 # -- scenes ---------------------------------------------------------------------------
 
@@ -346,6 +346,42 @@ def test_threads_and_chunks_do_not_change_the_hits():
     one = core.build(mesh, "grid", threads=1).trace(o, d)
     many = core.build(mesh, "grid", threads=3, chunk_size=257).trace(o, d)
     assert_same_hits(many, one, "threads=3, chunk_size=257 vs threads=1")
+
+
+@pytest.mark.parametrize("shape", [(5, 7, 9), (1, 1, 40), (24, 3, 1), (30, 26, 33)])
+def test_empty_radius_cubes_hold_no_occupied_cell_stay_inside_the_grid_and_are_at_least_half_the_largest(shape):
+    rng = np.random.default_rng(sum(shape))
+    occ = rng.random(shape) < 0.003
+    occ[tuple(s // 2 for s in shape)] = True
+    r = empty_radius(occ).astype(np.int64)
+    cells = np.indices(shape).reshape(3, -1).T
+    occupied = np.argwhere(occ)
+    # brute force: the largest empty cube inside the grid, from the chessboard distance
+    cheb = np.abs(cells[:, None, :] - occupied[None, :, :]).max(axis=2).min(axis=1)
+    face = np.minimum(cells, np.array(shape) - 1 - cells).min(axis=1)
+    largest = np.maximum(np.minimum(cheb - 1, face), 0)
+    got = r.reshape(-1)
+    over = np.flatnonzero(got > largest)
+    assert not over.size, f"cells {cells[over[:5]].tolist()}: radius {got[over[:5]].tolist()} > largest empty cube {largest[over[:5]].tolist()}"
+    short = np.flatnonzero(2 * got + 1 < np.minimum(largest, 15))
+    assert not short.size, f"cells {cells[short[:5]].tolist()}: radius {got[short[:5]].tolist()} under half of {largest[short[:5]].tolist()}"
+
+
+def test_empty_space_skip_changes_no_hit_on_a_sparse_scene():
+    """Two dense clusters in the corners of a box sprinkled with tiny triangles: empty cubes
+    of every radius, and an occupied cell just past many of them."""
+    a, b, c = soup(300, seed=11, size=0.01), soup(300, seed=12, size=0.01), soup(60, seed=14, size=0.002)
+    v = np.concatenate([a.vertices * 0.05, b.vertices * 0.05 + 0.95, c.vertices])
+    t = np.concatenate([a.triangles, b.triangles + len(a.vertices), c.triangles + len(a.vertices) + len(b.vertices)])
+    mesh = core.TriangleMesh(v, t)
+    o, d = random_rays(mesh, 4000, seed=13, grow=0.1)
+    d[::7, 0] = 0.0
+    d[1::7, 1] = -0.0
+    grid, want = check_against_brute(mesh, o, d, "empty-space skip", density=4.0)
+    assert grid.stats()["skippable_cell_fraction"] > 0.25, "set-up: too few cells to jump from"
+    plain = core.build(mesh, "grid", density=4.0, skip=False)
+    assert plain.stats()["skippable_cell_fraction"] == 0.0
+    assert_same_hits(plain.trace(o, d), want, "skip=False")
 
 
 def test_a_mesh_of_only_degenerate_triangles_is_all_misses():

@@ -135,8 +135,11 @@ def test_without_embreex_the_decision_is_between_grid_and_bvh(fresh, addon, monk
     p = props()
     assert not p.embree_available and not p.embree_considered
     assert p.decision in {"GRID", "BVH"}
-    assert "Embree skipped" in p.notes
-    assert "embree" not in json.loads(p.last_analysis_json)["structures"]
+    reason = addon.core.embree.embree_unavailable_reason()
+    assert reason and p.embree_unavailable == reason, (p.embree_unavailable, reason)
+    assert f"Embree unavailable: {reason}; deciding between the grid and the BVH" in p.notes, p.notes
+    record = json.loads(p.last_analysis_json)
+    assert "embree" not in record["structures"] and record["embree_unavailable"] == reason
     bpy.context.view_layer.objects.active = bpy.data.objects["Cube"]
     assert bpy.ops.hybrid_raycast.trace(workload="CAMERA") == {"FINISHED"}
     assert p.trace_structure in {"GRID", "BVH"}

@@ -119,6 +119,8 @@ class VIEW3D_PT_hybrid_raycast(_Base, bpy.types.Panel):
                 legend.label(text="Embree", icon="KEYTYPE_JITTER_VEC")
             layout.label(text="Total time vs rays (log-log); band: interval")
         layout.label(text=f"Calibration: {props.calibration_source}", icon="PREFERENCES")
+        if not props.embree_available:
+            layout.label(text=f"Embree unavailable: {props.embree_unavailable or 'embreex not importable'}", icon="INFO")
 
 
 class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
