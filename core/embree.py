@@ -168,26 +168,29 @@ class EmbreeAccel(Accel):
         step = np.maximum(o / d, 1e-30) * 2.0 ** -21
         return np.maximum(s * (1 + 2.0 ** -21), s + step)
 
+    def _hits_from_origin(self, rays: Rays):
+        """Every ray as given over [0, tmax], when all have tmin <= 0 and tmax >= 0: Hits,
+        and the indices of the rays whose nearest hit is at exactly t = 0."""
+        r = self._run(rays.origins, rays.directions, rays.tmax, "INTERSECT")
+        prim, tfar = r["primID"], r["tfar"]
+        good = (prim >= 0) & (tfar > 0)
+        zero = np.float32(0)
+        hits = Hits(np.where(good, tfar, np.float32(np.inf)), np.where(good, self._triangles(prim), np.int32(-1)),
+                    np.where(good, r["u"], zero), np.where(good, r["v"], zero))
+        at_zero = (prim >= 0) & (tfar <= 0)
+        return hits, (np.flatnonzero(at_zero) if at_zero.any() else None)
+
     def _trace_from_origin(self, rays: Rays, idx, out: Hits):
-        """Rays ``idx`` (None: all) as given over [0, tmax] into ``out``; returns the
-        indices of those whose nearest hit is at exactly t = 0 (to be traced again)."""
-        o, d, tmax = rays.origins, rays.directions, rays.tmax
-        if idx is not None:
-            o, d, tmax = o[idx], d[idx], tmax[idx]
+        """Rays ``idx`` as given over [0, tmax] into ``out``; returns the indices of those
+        whose nearest hit is at exactly t = 0 (to be traced again)."""
+        o, d, tmax = rays.origins[idx], rays.directions[idx], rays.tmax[idx]
         live = tmax >= 0
         if not live.all():
-            idx = (np.arange(len(rays)) if idx is None else idx)[live]
-            o, d, tmax = o[live], d[live], tmax[live]
+            idx, o, d, tmax = idx[live], o[live], d[live], tmax[live]
         r = self._run(o, d, tmax, "INTERSECT")
         prim, tfar = r["primID"], r["tfar"]
         hit = prim >= 0
         good = hit & (tfar > 0)
-        if idx is None:  # every ray: whole arrays, no scatter
-            out.t[:] = np.where(good, tfar, np.float32(np.inf))
-            out.triangle[:] = np.where(good, self._triangles(prim), -1)
-            out.u[:] = np.where(good, r["u"], np.float32(0))
-            out.v[:] = np.where(good, r["v"], np.float32(0))
-            return np.flatnonzero(hit & ~good)
         g = idx[good]
         out.t[g] = tfar[good]
         out.triangle[g] = self._triangles(prim[good])
@@ -197,14 +200,16 @@ class EmbreeAccel(Accel):
 
     def _trace_rays(self, rays: Rays) -> Hits:
         m = len(rays)
-        out = Hits.empty(m)
         if self.scene is None:
-            return out
+            return Hits.empty(m)
         fresh = rays.tmin <= 0  # a negative tmin only widens the range: Embree starts at 0
-        if fresh.all():
-            at_zero = self._trace_from_origin(rays, None, out)
+        if fresh.all() and (rays.tmax >= 0).all():  # the common case: no scatter, no float64
+            out, at_zero = self._hits_from_origin(rays)
+            if at_zero is None:
+                return out
             todo = np.empty(0, np.intp)
         else:
+            out = Hits.empty(m)
             at_zero = self._trace_from_origin(rays, np.flatnonzero(fresh), out)
             todo = np.flatnonzero(~fresh)
         s = rays.tmin[todo].astype(np.float64)

@@ -106,8 +106,9 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
     if (lo > hi).any():
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
+    lo, hi = lo.astype(F32), hi.astype(F32)  # a fresh (M,) array each, also from a broadcast scalar
     if not shear:
-        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), None, None, None, None)
+        return Rays(o32, d32, lo, hi, None, None, None, None)
     ad = np.abs(d32)
     ax, ay, az = ad[:, 0], ad[:, 1], ad[:, 2]
     # the dominant axis, the first on ties (as argmax), without a reduction over rows of three
@@ -126,7 +127,7 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
     sxyz[:, 1] = dflat.take(rows3 + ky) / dz
     sxyz[:, 2] = F32(1.0) / dz
     with np.errstate(over="ignore"):
-        return Rays(o32, d32, lo.astype(F32), hi.astype(F32), kx, ky, kz, sxyz)
+        return Rays(o32, d32, lo, hi, kx, ky, kz, sxyz)
 
 
 def _edge_functions(ax, ay, bx, by, cx, cy):
