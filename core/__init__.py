@@ -11,7 +11,8 @@ from .intersect import prepare_rays
 from .mesh import TriangleMesh
 from .objio import load_obj
 from .rays import camera_rays, hemisphere_rays, uniform_rays
-from .calibration import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
+from . import decide
+from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
 from .plan import Plan, plan, trace_online, trace_planned
 from .scenes import calibration_set
 

@@ -37,7 +37,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .accel import Accel, build
-from .calibration import Calibration, _prepare, available_kinds, load_default, time_trace
+from .decide.calfile import Calibration, load_default
+from .decide.cost import break_even
+from .decide.measurements import _prepare, available_kinds, time_trace
+from .decide.rule import REUSES_SAMPLES, choose
 from .hits import Hits
 from .mesh import TriangleMesh
 
@@ -50,9 +53,6 @@ DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
 DECISIONS = ("GRID", "BVH", "EMBREE")
-#: structures that answer every ray bit for bit like the grid: a plan that drew its samples
-#: from the workload keeps their answers when it chooses one of these
-REUSES_SAMPLES = ("grid", "bvh")
 
 
 def _check_expected(expected_rays) -> float:
@@ -101,11 +101,6 @@ class Candidate:
         for k in ("break_even", "break_even_low", "break_even_high"):
             d[k] = _json_float(d[k])
         return d
-
-
-def _break_even(build_time, t_grid, t_hds) -> float:
-    """R* = T_B^H / (t_G - t_H), inf when the grid is at least as fast per ray."""
-    return build_time / (t_grid - t_hds) if t_grid > t_hds else math.inf
 
 
 @dataclass
@@ -318,10 +313,10 @@ def plan_from_timings(
         e = calibration.estimate(kind, n)
         cands[kind] = Candidate(
             kind, e.build, e.build_low, e.build_high, e.per_ray, e.per_ray_low, e.per_ray_high, measured=False,
-            break_even=_break_even(e.build, grid_per_ray, e.per_ray),
+            break_even=break_even(e.build, grid_per_ray, e.per_ray),
             # the low end: cheap build, fast rays, a slow grid; the high end: the opposite
-            break_even_low=_break_even(e.build_low, g_hi, e.per_ray_low),
-            break_even_high=_break_even(e.build_high, g_lo, e.per_ray_high),
+            break_even_low=break_even(e.build_low, g_hi, e.per_ray_low),
+            break_even_high=break_even(e.build_high, g_lo, e.per_ray_high),
         )
     hds = [c for k, c in cands.items() if k != "grid"]
     if n == 0:
@@ -335,18 +330,9 @@ def plan_from_timings(
     else:
         be, be_low, be_high, be_kind = math.inf, math.inf, math.inf, None
     answered = max(0, int(answered))
-    if not answered:
-        if r <= be:
-            decision = "grid"  # ties go to the grid: nothing more to build
-        else:
-            decision = min(hds, key=lambda c: (float(c.total_time(r)), c.kind)).kind
-    else:
-        left = max(r - answered, 0.0)
-        if left == 0:
-            notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
-        costs = [(left * cands["grid"].per_ray, 0, "grid")] + [
-            (float(c.total_time(left if c.kind in REUSES_SAMPLES else r)), 1, c.kind) for c in hds]
-        decision = min(costs)[2]  # ties go to the grid, then to the first name
+    if answered and r <= answered:
+        notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
+    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered)[0])
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")

@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 
 from hybrid_raycast.core import report as rep
-from hybrid_raycast.core.calibration import Calibration, KindFit, Measurement, SceneRecord, log2n, nlog2n
-from hybrid_raycast.core.plan import plan_from_timings
+from hybrid_raycast.core.decide import Calibration, KindFit, Measurement, SceneRecord, log2n, nlog2n
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -140,34 +139,6 @@ def test_online_never_switches_when_the_estimate_is_not_faster_per_ray():
     assert rep.online_switch(scene(est=(2.0, 1e-6))) == math.inf
     t = rep.strategy_totals(scene(est=(2.0, 2e-6)), [1e8])
     assert t["online"][0] == pytest.approx(1.0 + 100.0)
-
-
-def test_hybrid_choice_matches_plan_from_timings():
-    n = 1024  # log2 N = 10, N log2 N = 10240
-    cal = Calibration({"bvh": KindFit(1e-5, 5e-8, 1e-5, 1e-5, 5e-8, 5e-8, 1),
-                       "embree": KindFit(2e-5, 1e-8, 2e-5, 2e-5, 1e-8, 1e-8, 1)}, source="hand")
-    est = {k: rep.Cost(cal.estimate(k, n).build, cal.estimate(k, n).per_ray) for k in ("bvh", "embree")}
-    s = rep.SceneResult("s", n, 1, rep.Cost(0.01, 2e-6), dict(est), est, 2e-6, 0.0)
-    for r in np.logspace(2, 9, 50):
-        want = plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh", "embree")).chosen
-        assert rep.hybrid_choice(s, [r], ("bvh", "embree"))[0] == want, f"R = {r:.3g}"
-
-
-def test_hybrid_reuse_choice_matches_plan_from_timings_with_answered_samples():
-    n, k = 1024, 4096
-    cal = Calibration({"bvh": KindFit(1e-5, 5e-8, 1e-5, 1e-5, 5e-8, 5e-8, 1),
-                       "embree": KindFit(2e-5, 1e-8, 2e-5, 2e-5, 1e-8, 1e-8, 1)}, source="hand")
-    est = {kk: rep.Cost(cal.estimate(kk, n).build, cal.estimate(kk, n).per_ray) for kk in ("bvh", "embree")}
-    s = rep.SceneResult("s", n, 1, rep.Cost(0.01, 2e-6), dict(est), est, 2e-6, 0.0, k)
-    seen = set()
-    for r in np.logspace(2, 9, 60):
-        want = plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh", "embree"), answered=min(k, int(r))).chosen
-        got = rep.hybrid_reuse_choice(s, [r], ("bvh", "embree"))[0]
-        assert got == want, f"R = {r:.3g}: {got} vs {want}"
-        seen.add(got)
-        if r <= k:
-            assert got == "grid", "a workload answered while planning needs no structure"
-    assert len(seen) >= 2, f"the sweep should cross a break-even: {seen}"
 
 
 def test_pick_accuracy_counts_only_cases_that_differ_by_more_than_ten_percent():
@@ -319,7 +290,7 @@ def test_affine_candidate_recovers_a_fixed_cost_exactly():
 
 
 def test_affine_model_is_a_calibration_model_that_survives_save_and_load(tmp_path):
-    from hybrid_raycast.core.calibration import fit, load
+    from hybrid_raycast.core.decide import fit, load
 
     recs = records(a_b=0.002, a_r=1e-7)
     cal = Calibration(fit(recs, ("bvh",), model="affine"), scenes=recs, model="affine")
@@ -352,7 +323,7 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
     heads = [h["measure"] for h in data["summary"]["headline"]]
     assert any("median absolute break-even error" in h for h in heads)
     assert any("(ii)" in h and "oracle" in h for h in heads) and any("(i)" in h and "oracle" in h for h in heads)
-    from hybrid_raycast.core.calibration import DEFAULT_MODEL
+    from hybrid_raycast.core.decide import DEFAULT_MODEL
 
     cal = data["meta"]["calibration"]
     assert cal["model"] == cal["default_model"] == DEFAULT_MODEL, "the headline is the add-on as it stands"

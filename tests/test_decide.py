@@ -1,0 +1,77 @@
+"""The cost model's arithmetic and the one decision rule (core/decide), on exact numbers.
+
+The break-even formula and the rule are each written once (``cost.break_even``,
+``rule.choose``); the plan and the evaluation call them, so these tests check the one
+copy against hand-worked figures rather than keeping copies equal.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hybrid_raycast.core.decide import cost, rule
+from hybrid_raycast.core.decide import evaluate as ev
+from hybrid_raycast.core.plan import plan_from_timings
+from hybrid_raycast.core.decide import Calibration, KindFit
+
+
+def test_break_even_is_build_over_the_per_ray_gain_and_never_when_the_grid_is_not_slower():
+    assert cost.break_even(0.5, 3e-6, 1e-6) == pytest.approx(250_000.0, rel=1e-12)  # 0.5 / 2e-6
+    assert math.isinf(cost.break_even(0.5, 1e-6, 1e-6))
+    assert math.isinf(cost.break_even(0.5, 1e-6, 2e-6))
+    assert cost.break_even(0.0, 2e-6, 1e-6) == 0.0
+
+
+def test_choose_is_the_least_cost_with_the_grid_build_sunk():
+    # grid 4 us/ray; bvh: 0.1 s + 1 us/ray (R* = 0.1 / 3e-6 = 33,333); embree: 0.3 s + 0.5 us/ray
+    # (R* = 0.3 / 3.5e-6 = 85,714).  bvh vs embree: 0.1 + 1e-6 R = 0.3 + 5e-7 R at R = 400,000.
+    cands = {"bvh": (0.1, 1e-6), "embree": (0.3, 5e-7)}
+    got = rule.choose([1_000, 33_333, 33_334, 399_999, 400_001, 1e7], 4e-6, cands)
+    assert list(got) == ["grid", "grid", "bvh", "bvh", "embree", "embree"]
+
+
+def test_choose_breaks_ties_towards_the_grid_then_the_first_name():
+    # powers of two, so both totals are exact in binary and tie exactly at R* = 512
+    t_g, b, t = 2.0 ** -18, 2.0 ** -10, 2.0 ** -19  # R* = 2^-10 / 2^-19 = 512
+    assert rule.choose([512], t_g, {"bvh": (b, t)})[0] == "grid"
+    assert rule.choose([513], t_g, {"bvh": (b, t)})[0] == "bvh"
+    assert rule.choose([1e6], t_g, {"bvh": (b, t), "embree": (b, t)})[0] == "bvh"
+
+
+def test_choose_with_answered_samples_weighs_the_rays_left_and_embree_retraces_all():
+    # 1,000 rays answered: grid costs (R - 1000) t_G, the numpy BVH T_B + (R - 1000) t_H,
+    # Embree T_B + R t_E
+    cands = {"bvh": (0.02, 1e-6), "embree": (0.0, 3.5e-6)}
+    names, c = rule.costs([5_000], 4e-6, cands, answered=1000)
+    assert names == ["grid", "bvh", "embree"]
+    assert c[:, 0] == pytest.approx([0.016, 0.024, 0.0175], rel=1e-12)
+    assert rule.choose([5_000], 4e-6, cands, answered=1000)[0] == "grid"
+    assert rule.choose([5_000], 4e-6, cands, answered=0)[0] == "embree"  # 0.02 > 0.0175
+    assert rule.choose([800], 4e-6, {"bvh": (0.0, 1e-6)}, answered=1000)[0] == "grid"  # nothing left to trace
+
+
+def test_plan_and_evaluation_decide_through_the_one_rule():
+    """The plan's decision and the evaluation's hybrid are the rule applied to their figures
+    (hand numbers: N = 1024, bvh 0.1024 s + 0.5 us/ray, grid 2 us/ray: R* = 68,266.7)."""
+    n = 1024
+    cal = Calibration({"bvh": KindFit(1e-5, 5e-8, 1e-5, 1e-5, 5e-8, 5e-8, 1)}, source="hand")
+    e = cal.estimate("bvh", n)
+    assert (e.build, e.per_ray) == pytest.approx((0.1024, 5e-7), rel=1e-12)
+    s = ev.SceneResult("s", n, 1, ev.Cost(0.01, 2e-6), {"bvh": ev.Cost(e.build, e.per_ray)},
+                       {"bvh": ev.Cost(e.build, e.per_ray)}, 2e-6, 0.0, 4096)
+    for r, want in ((68_266, "grid"), (68_267, "bvh")):
+        assert plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh")).chosen == want
+        assert ev.hybrid_choice(s, [r])[0] == want
+    assert ev.hybrid_reuse_choice(s, [68_267])[0] == "grid"  # 4,096 answered: 64,171 left < R*
+    assert ev.hybrid_reuse_choice(s, [68_267 + 4096])[0] == "bvh"
+
+
+def test_affine_model_estimates_on_exact_numbers():
+    f = KindFit(2e-8, 1e-7, 1e-8, 4e-8, 5e-8, 2e-7, 3, extra={"a_B": 1e-3, "a_R": 2e-7})
+    e = cost.MODELS["affine"][1](f, "bvh", 1 << 16)  # N log2 N = 65536 * 16 = 1,048,576
+    assert (e.build, e.build_low, e.build_high) == pytest.approx((1e-3 + 2e-8 * 1048576, 1e-3 + 1e-8 * 1048576,
+                                                                  1e-3 + 4e-8 * 1048576), rel=1e-12)
+    assert (e.per_ray, e.per_ray_low, e.per_ray_high) == pytest.approx((2e-7 + 1.6e-6, 2e-7 + 8e-7, 2e-7 + 3.2e-6), rel=1e-12)
