@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
 import numpy as np
@@ -90,26 +90,62 @@ def warm_up(kinds, *, threads=None, configs=None):
         measure(warm, kind, o, d, threads=threads, config=(configs or {}).get(kind))
 
 
+def interleaved(jobs: dict, repeats: int) -> dict[str, list]:
+    """Run every job ``repeats`` times, interleaved (round r runs the jobs in an order
+    rotated by r), and return each job's results in run order.
+
+    On a shared machine the time of one run drifts by 20-40% from second to second;
+    interleaving spreads that drift over every job alike, so the medians of the runs
+    compare fairly and their spread says how repeatable each figure is."""
+    names = list(jobs)
+    out = {k: [] for k in names}
+    for r in range(max(1, int(repeats))):
+        for i in range(len(names)):
+            k = names[(i + r) % len(names)]
+            out[k].append(jobs[k]())
+    return out
+
+
 @dataclass
 class BreakEven:
     """Measured break-even of each hierarchical structure against the grid on one scene.
 
     ``R_C[k] = T_B^k / (t_G - t_k)`` with measured times (inf where t_G <= t_k), the same
     formula as the estimate (the grid's build is sunk), so the two compare directly.
+    measurements: each structure's median build time and median trace time over the
+    interleaved repeats; R_C_repeats: R_C of each repeat on its own, whose spread is the
+    measurement's own repeatability (``repeatability``).
     """
 
     triangles: int
     rays: int
     measurements: dict[str, Measurement]
     R_C: dict[str, float]
+    repeats: int = 1
+    R_C_repeats: dict[str, list] = field(default_factory=dict)
+    #: every repeat's Measurement per kind
+    runs: dict[str, list] = field(default_factory=dict)
+    #: the last structure built of each kind (not serialised), for callers that go on using it
+    structures: dict = field(default_factory=dict, repr=False)
+
+    def repeatability(self, kind: str) -> float:
+        """(max - min) / median of the repeats' R_C, in percent (NaN with fewer than two
+        finite repeats): how far the truth itself moves between runs."""
+        v = [x for x in self.R_C_repeats.get(kind, []) if math.isfinite(x)]
+        if len(v) < 2:
+            return math.nan
+        return 100.0 * (max(v) - min(v)) / float(np.median(v))
 
 
-def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threads=None, configs=None, seed=0) -> BreakEven:
+def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threads=None, configs=None, seed=0,
+                       repeats: int = 1) -> BreakEven:
     """Really build every structure in ``kinds`` (which must include 'grid') and trace
     ``rays`` through each: the true break-even R_C of the paper's evaluation.
 
     rays: (origins, directions), or a count of the paper's uniform random rays.
     configs: optional {kind: config dict} passed to ``build``.
+    repeats: builds and traces of every structure, interleaved (``interleaved``); the
+    break-even is taken from the medians.
     """
     from ..rays import uniform_rays
 
@@ -121,10 +157,28 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
         origins, directions = rays
     _prepare(mesh)
     warm_up(kinds, threads=threads, configs=configs)
-    meas = {k: measure(mesh, k, origins, directions, threads=threads, config=(configs or {}).get(k)) for k in kinds}
+    last = {}
+
+    def job(kind):
+        def run():
+            cfg = dict((configs or {}).get(kind) or {})
+            if threads is not None:
+                cfg.setdefault("threads", threads)
+            last.pop(kind, None)  # free the previous structure before building the next
+            acc = build(mesh, kind, **cfg)
+            _, dt = time_trace(acc, origins, directions)
+            last[kind] = acc
+            return Measurement(float(acc.build_time), float(dt), int(len(origins)), int(acc.threads))
+        return run
+
+    runs = interleaved({k: job(k) for k in kinds}, repeats)
+    meas = {k: Measurement(float(np.median([m.build_time for m in v])), float(np.median([m.trace_time for m in v])),
+                           v[0].rays, v[0].threads) for k, v in runs.items()}
     g = meas["grid"].per_ray
     rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
-    return BreakEven(mesh.triangle_count, len(origins), meas, rc)
+    rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
+              for k in kinds if k != "grid"}
+    return BreakEven(mesh.triangle_count, len(origins), meas, rc, max(1, int(repeats)), rc_rep, runs, last)
 
 
 def _measure_grid(mesh, origins, directions, ladder, threads, config, seed):
