@@ -75,3 +75,33 @@ def test_affine_model_estimates_on_exact_numbers():
     assert (e.build, e.build_low, e.build_high) == pytest.approx((1e-3 + 2e-8 * 1048576, 1e-3 + 1e-8 * 1048576,
                                                                   1e-3 + 4e-8 * 1048576), rel=1e-12)
     assert (e.per_ray, e.per_ray_low, e.per_ray_high) == pytest.approx((2e-7 + 1.6e-6, 2e-7 + 8e-7, 2e-7 + 3.2e-6), rel=1e-12)
+
+
+def test_interleaved_rotates_the_order_each_round_and_keeps_each_jobs_results_in_order():
+    from hybrid_raycast.core.decide.measurements import interleaved
+
+    log = []
+    jobs = {k: (lambda k=k: log.append(k) or len(log)) for k in ("a", "b", "c")}
+    out = interleaved(jobs, 3)
+    assert log == ["a", "b", "c", "b", "c", "a", "c", "a", "b"]
+    assert out == {"a": [1, 6, 8], "b": [2, 4, 9], "c": [3, 5, 7]}
+
+
+def test_measure_break_even_takes_medians_of_the_repeats_and_reports_their_spread():
+    from hybrid_raycast.core import scenes as S
+    from hybrid_raycast.core.decide import measure_break_even
+
+    be = measure_break_even(S.torus(2000), 3000, kinds=("grid", "bvh"), repeats=3)
+    for k in ("grid", "bvh"):
+        runs = be.runs[k]
+        assert len(runs) == 3
+        assert be.measurements[k].build_time == float(np.median([m.build_time for m in runs]))
+        assert be.measurements[k].trace_time == float(np.median([m.trace_time for m in runs]))
+    g, h = be.measurements["grid"], be.measurements["bvh"]
+    assert be.R_C["bvh"] == cost.break_even(h.build_time, g.per_ray, h.per_ray)
+    reps = [cost.break_even(b.build_time, a.per_ray, b.per_ray) for a, b in zip(be.runs["grid"], be.runs["bvh"])]
+    assert be.R_C_repeats["bvh"] == reps
+    fin = [x for x in reps if math.isfinite(x)]
+    if len(fin) >= 2:
+        assert be.repeatability("bvh") == pytest.approx(100 * (max(fin) - min(fin)) / np.median(fin))
+    assert set(be.structures) == {"grid", "bvh"}
