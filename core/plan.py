@@ -41,6 +41,7 @@ from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
 from .decide.measurements import _prepare, available_kinds, time_trace
 from .decide.rule import REUSES_SAMPLES, choose
+from .decide.work import grid_work
 from .hits import Hits
 from .mesh import TriangleMesh
 
@@ -131,6 +132,9 @@ class Plan:
     #: the grid's time per ray on the K samples, and the small-batch ratio applied to it
     grid_sample_per_ray: float = 0.0
     grid_sample_ratio: float = 1.0
+    #: the grid sample's per-ray work counts (``decide.work.Work`` as a dict) when the
+    #: calibration's count model made the estimate, else None
+    work: dict | None = None
     #: sample rays that came from the workload and whose answers the plan keeps
     workload_samples: int = 0
     estimate_time: float = 0.0
@@ -169,7 +173,7 @@ class Plan:
             "break_even": _json_float(self.break_even), "break_even_low": _json_float(self.break_even_low),
             "break_even_high": _json_float(self.break_even_high), "break_even_kind": self.break_even_kind,
             "decision": self.decision, "certain": self.certain, "grid_sample_per_ray": self.grid_sample_per_ray,
-            "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples,
+            "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
@@ -285,6 +289,7 @@ def plan_from_timings(
     kinds=("grid", "bvh", "embree"),
     samples: int = 0,
     answered: int = 0,
+    per_ray: dict | None = None,
     notes=(),
 ) -> Plan:
     """The plan's arithmetic alone, from a measured grid and the calibration.
@@ -295,7 +300,9 @@ def plan_from_timings(
     grid's time per ray (default: the point value).  answered: rays of the workload the
     grid's samples have answered already; the decision then weighs what is left to trace,
     R - answered rays for the grid and the structures in REUSES_SAMPLES, R for the others
-    (the break-even figures still count a workload's rays from zero).
+    (the break-even figures still count a workload's rays from zero).  per_ray:
+    {kind: (point, low, high)} time per ray of a candidate from elsewhere (the count
+    model) instead of the calibration's estimate for N.
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
@@ -311,6 +318,8 @@ def plan_from_timings(
             notes.append(f"{kind} skipped: no calibration constants for it (calibrated: {', '.join(calibration.fits) or 'none'})")
             continue
         e = calibration.estimate(kind, n)
+        if per_ray and kind in per_ray:
+            e.per_ray, e.per_ray_low, e.per_ray_high = per_ray[kind]
         cands[kind] = Candidate(
             kind, e.build, e.build_low, e.build_high, e.per_ray, e.per_ray_low, e.per_ray_high, measured=False,
             break_even=break_even(e.build, grid_per_ray, e.per_ray),
@@ -418,11 +427,25 @@ def plan(
     else:
         k, t_sample, what = 0, 0.0, "none"
     ratio, ratio_lo, ratio_hi = calibration.grid_sample_ratio(k) if k else (1.0, 1.0, 1.0)
-    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), t_sample * ratio,
-                          grid_per_ray_low=t_sample * ratio_lo, grid_per_ray_high=t_sample * ratio_hi,
-                          kinds=kinds, samples=k, answered=k if idx is not None else 0, notes=notes)
-    p.grid_sample_per_ray, p.grid_sample_ratio = t_sample, ratio
-    if rays is not None or k:
+    g, g_lo, g_hi = t_sample * ratio, t_sample * ratio_lo, t_sample * ratio_hi
+    work, per_ray = None, {}
+    if k and calibration.counts.get("grid") is not None:
+        # counts instead of the sample's time: the same rays through the same grid give the
+        # same counts, so the estimate repeats exactly with a fixed calibration
+        work = grid_work(grid, o, d, sample.t, tmin, tmax).to_dict()
+        g, g_lo, g_hi = calibration.count_per_ray("grid", mesh.triangle_count, work)
+        per_ray = {kk: e for kk in kinds if kk != "grid"
+                   if (e := calibration.count_per_ray(kk, mesh.triangle_count, work)) is not None}
+    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), g,
+                          grid_per_ray_low=g_lo, grid_per_ray_high=g_hi, kinds=kinds, samples=k,
+                          answered=k if idx is not None else 0, per_ray=per_ray, notes=notes)
+    p.grid_sample_per_ray = t_sample
+    p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
+    p.work = work
+    if work is not None:
+        p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells, "
+                       f"{work['refs']:.1f} references per ray; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
+    elif rays is not None or k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
                        f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")
     if idx is not None and k:

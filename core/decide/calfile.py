@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Estimate, KindFit, Measurement, SceneRecord
+from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord
 
 #: bump when the JSON layout or the meaning of a field changes
 CALIBRATION_FORMAT = 2
@@ -109,6 +109,9 @@ class Calibration:
     source: str = "measured"
     version: dict = field(default_factory=current_version)
     notes: list[str] = field(default_factory=list)
+    #: per-ray time models on the grid sample's work counts, {'grid' | kind: CountFit}
+    #: (``cost.fit_counts``); empty in files made before them: the plan then times its sample
+    counts: dict = field(default_factory=dict)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -144,6 +147,15 @@ class Calibration:
         lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
         return med, lo, hi
 
+    def count_per_ray(self, kind: str, n: int, work: dict):
+        """(point, low, high) time per ray of ``kind`` ('grid' or a structure) on an
+        N-triangle scene whose grid sample counted ``work``; None without a count model."""
+        f = self.counts.get(kind)
+        if f is None or not work:
+            return None
+        t = f.predict(n, work)
+        return t, t * f.low, t * f.high
+
     def describe(self) -> str:
         """One line per structure: the constants and their interval, in ns."""
         lines = [f"calibration ({self.source}, {self.model} model, {len(self.scenes)} scenes, {self.created or 'undated'})"]
@@ -152,6 +164,9 @@ class Calibration:
                 f"  {k:7s} c_B {f.c_B * 1e9:8.2f} ns [{f.c_B_low * 1e9:.2f}, {f.c_B_high * 1e9:.2f}]"
                 f"   c_R {f.c_R * 1e9:8.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]   ({f.scenes} scenes)"
             )
+        for k, f in self.counts.items():
+            lines.append(f"  {k:7s} per ray = " + " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(f.terms, f.coef))
+                         + f"   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------
@@ -181,7 +196,8 @@ class Calibration:
             fits = {str(k): KindFit(**v) for k, v in d["fits"].items()}
             scenes = [
                 SceneRecord(s["name"], int(s["triangles"]), int(s["rays"]), {k: Measurement(**m) for k, m in s["kinds"].items()},
-                            {int(k): float(v) for k, v in s.get("grid_samples", {}).items()})
+                            {int(k): float(v) for k, v in s.get("grid_samples", {}).items()},
+                            {str(k): float(v) for k, v in s.get("work", {}).items()})
                 for s in d.get("scenes", [])
             ]
             model = str(d.get("model", DEFAULT_MODEL))
@@ -190,6 +206,8 @@ class Calibration:
                 rays_per_scene=int(d.get("rays_per_scene", 0)), scale=str(d.get("scale", "")),
                 threads=d.get("threads"), duration_s=float(d.get("duration_s", 0.0)), created=str(d.get("created", "")),
                 source=str(d.get("source", "measured")), version=version, notes=[str(x) for x in d.get("notes", [])],
+                counts={str(k): CountFit(tuple(v["terms"]), tuple(float(c) for c in v["coef"]), float(v["low"]),
+                                         float(v["high"]), int(v.get("scenes", 0))) for k, v in d.get("counts", {}).items()},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise CalibrationError(f"malformed calibration data ({type(e).__name__}: {e})") from None

@@ -73,6 +73,8 @@ class SceneRecord:
     kinds: dict[str, Measurement] = field(default_factory=dict)
     #: the grid's time per ray on a batch of K rays, {K: seconds}: what a plan's sample costs
     grid_samples: dict[int, float] = field(default_factory=dict)
+    #: the grid's per-ray work counts on K uniform sample rays (``work.Work`` as a dict)
+    work: dict = field(default_factory=dict)
 
     def grid_sample_ratio(self, k: int) -> float | None:
         """Large-workload grid time per ray over the K-ray sample's, or None if not measured."""
@@ -198,3 +200,84 @@ def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread
     fit_one = MODELS[model][0]
     return {k: fit_one(records, k, tuple(spread)) for k in kinds if any(k in r.kinds for r in records)}
 
+
+
+# -- per-ray times from the grid sample's work counts (issue 14) -------------------------------
+
+def terms(triangles: int, work: dict) -> dict[str, float]:
+    """The named quantities a count model may weigh, for one scene: its size and the grid
+    sample's per-ray means (``work.Work``)."""
+    lg = log2n(triangles)
+    w = {k: float(work.get(k, 0.0)) for k in ("cells", "refs", "hit", "length")}
+    return {"1": 1.0, "log2n": lg, **w, "hit_log2n": w["hit"] * lg, "length_log2n": w["length"] * lg}
+
+
+def nonneg_relative_lsq(x, y) -> np.ndarray:
+    """Coefficients b >= 0 minimising sum ((x b)_i / y_i - 1)^2 (relative residuals, so a
+    small scene weighs as much as a large one): least squares, dropping the most negative
+    term and refitting until none is negative."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    keep = list(range(x.shape[1]))
+    b = np.zeros(x.shape[1])
+    while keep:
+        a = x[:, keep] / y[:, None]
+        sol, *_ = np.linalg.lstsq(a, np.ones(len(y)), rcond=None)
+        if (sol >= 0).all():
+            b[keep] = sol
+            return b
+        keep.pop(int(np.argmin(sol)))
+    return b
+
+
+@dataclass
+class CountFit:
+    """time per ray = sum_j coef[j] * terms[j] (seconds), with the spread of measured / fitted
+    over the calibration scenes as (low, high) multipliers."""
+
+    terms: tuple
+    coef: tuple
+    low: float = 1.0
+    high: float = 1.0
+    scenes: int = 0
+
+    def predict(self, triangles: int, work: dict) -> float:
+        t = terms(triangles, work)
+        return float(sum(c * t[k] for k, c in zip(self.terms, self.coef)))
+
+    @classmethod
+    def fit(cls, rows, names, spread=DEFAULT_SPREAD) -> "CountFit":
+        """rows: (triangles, work dict, measured time per ray) per scene."""
+        rows = [r for r in rows if r[2] > 0 and math.isfinite(r[2])]
+        if not rows:
+            return cls(tuple(names), tuple(0.0 for _ in names))
+        x = np.array([[terms(n, w)[k] for k in names] for n, w, _ in rows])
+        y = np.array([t for _, _, t in rows])
+        b = nonneg_relative_lsq(x, y)
+        f = cls(tuple(names), tuple(float(v) for v in b), scenes=len(rows))
+        q = [t / p for (n, w, t) in rows if (p := f.predict(n, w)) > 0]
+        if q:
+            lo, hi = (float(v) for v in np.percentile(q, spread))
+            f.low, f.high = min(lo, 1.0), max(hi, 1.0)
+        return f
+
+
+#: the terms of each count model (``terms``): the grid's time per ray from the cells it
+#: steps through and the references it tests (plus a fixed cost per ray); a hierarchical
+#: structure's from what the grid sample says of the scene.  Chosen by held-out error
+#: (docs/report/report.md, issue 14).
+COUNT_TERMS = {
+    "grid": ("1", "cells", "refs"),
+    "bvh": ("1", "log2n", "hit_log2n", "length_log2n"),
+    "embree": ("1", "log2n", "hit_log2n", "length_log2n"),
+}
+
+
+def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None) -> dict[str, CountFit]:
+    """A CountFit per kind ('grid' and the structures) over the records with work counts."""
+    terms_of = dict(COUNT_TERMS, **(terms_of or {}))
+    out = {}
+    for k in kinds:
+        rows = [(r.triangles, r.work, r.kinds[k].per_ray) for r in records if r.work and k in r.kinds]
+        if len(rows) >= 3 and k in terms_of:
+            out[k] = CountFit.fit(rows, terms_of[k], spread)
+    return out

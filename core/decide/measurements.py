@@ -18,7 +18,8 @@ import numpy as np
 from ..accel import Accel, build
 from ..mesh import TriangleMesh
 from .calfile import Calibration
-from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break_even, fit, nlog2n
+from .work import Work, grid_work
+from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break_even, fit, fit_counts, nlog2n
 
 #: rays per scene for each calibration scale.  The default is two chunks of the BVH
 #: (2 x 65,536 rays), so that the measured time per ray is a large workload's, spread
@@ -30,6 +31,11 @@ SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
 #: the least number of rays the grid's large-workload time per ray is measured on when
 #: samples are timed (whatever the scale's rays per scene)
 GRID_LARGE_RAYS = 1 << 17
+#: builds and traces of every structure per calibration scene, interleaved; the record
+#: keeps the medians (on this 2-core VM one trace moves by 20-40% between runs)
+CALIBRATION_REPEATS = 3
+#: sample rays on which calibration counts the grid's per-ray work, as a plan does
+WORK_SAMPLES = 16384
 
 
 # -- measuring ---------------------------------------------------------------------------------
@@ -172,8 +178,7 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
         return run
 
     runs = interleaved({k: job(k) for k in kinds}, repeats)
-    meas = {k: Measurement(float(np.median([m.build_time for m in v])), float(np.median([m.trace_time for m in v])),
-                           v[0].rays, v[0].threads) for k, v in runs.items()}
+    meas = {k: median_measurement(v) for k, v in runs.items()}
     g = meas["grid"].per_ray
     rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
     rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
@@ -181,9 +186,9 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
     return BreakEven(mesh.triangle_count, len(origins), meas, rc, max(1, int(repeats)), rc_rep, runs, last)
 
 
-def _measure_grid(mesh, origins, directions, ladder, threads, config, seed):
-    """The grid's Measurement on the calibration rays, and its time per ray on fresh
-    uniform samples of each size in ``ladder`` (what a plan's K-sample costs per ray).
+def _grid_samples(mesh, ladder, threads, config, seed) -> dict[int, float]:
+    """The grid's time per ray on fresh uniform samples of each size in ``ladder`` (what a
+    plan's K-sample costs per ray).
 
     Each sample is traced as ``plan`` traces it: first thing through a grid just built.
     A grid's first traces can cost more than later ones (freshly allocated memory is
@@ -195,11 +200,25 @@ def _measure_grid(mesh, origins, directions, ladder, threads, config, seed):
     for k in ladder:
         o, d = uniform_rays(mesh, int(k), seed=seed + int(k))
         samples[int(k)] = measure(mesh, "grid", o, d, threads=threads, config=config).per_ray
-    if ladder and len(origins) < GRID_LARGE_RAYS:
-        # the ratio needs a large workload's time per ray: the 'tiny' and 'quick' scales'
-        # few rays per scene would themselves be a small batch (a ratio of 2 measured)
-        origins, directions = uniform_rays(mesh, GRID_LARGE_RAYS, seed=seed)
-    return measure(mesh, "grid", origins, directions, threads=threads, config=config), samples
+    return samples
+
+
+def sample_work(mesh, k: int, *, threads=None, config=None, seed=0) -> Work:
+    """The grid's per-ray work counts on K uniform sample rays, as ``plan`` counts them."""
+    from ..rays import uniform_rays
+
+    cfg = dict(config or {})
+    if threads is not None:
+        cfg.setdefault("threads", threads)
+    grid = build(mesh, "grid", **cfg)
+    o, d = uniform_rays(mesh, int(k), seed=seed)
+    return grid_work(grid, o, d, grid.trace(o, d).t)
+
+
+def median_measurement(runs) -> Measurement:
+    """Median build time and median trace time of repeated Measurements of one structure."""
+    return Measurement(float(np.median([m.build_time for m in runs])), float(np.median([m.trace_time for m in runs])),
+                       runs[0].rays, runs[0].threads)
 
 
 def _size_hint(factory) -> float:
@@ -225,6 +244,8 @@ def calibrate(
     spread=DEFAULT_SPREAD,
     seed: int = 0,
     sample_ladder=SAMPLE_LADDER,
+    repeats: int = CALIBRATION_REPEATS,
+    work_samples: int = WORK_SAMPLES,
 ) -> Calibration:
     """Measure every structure in ``kinds`` on each scene and fit the model.
 
@@ -271,21 +292,32 @@ def calibrate(
         _prepare(mesh)
         origins, directions = uniform_rays(mesh, m_rays, seed=seed + i)
         rec = SceneRecord(name, mesh.triangle_count, m_rays)
+        jobs = {}
         for j, kind in enumerate(measured):
             report(i, j, f"scene {i + 1}/{len(scenes)}: {name} ({mesh.triangle_count:,} triangles), {kind}")
+            cfg = (configs or {}).get(kind)
             if kind == "grid":
-                rec.kinds[kind], rec.grid_samples = _measure_grid(mesh, origins, directions, sample_ladder, threads,
-                                                                  (configs or {}).get(kind), seed + 7919 * (i + 1))
+                gseed = seed + 7919 * (i + 1)
+                rec.grid_samples = _grid_samples(mesh, sample_ladder, threads, cfg, gseed)
+                rec.work = sample_work(mesh, work_samples, threads=threads, config=cfg, seed=gseed + 1).to_dict()
+                go, gd = origins, directions
+                if sample_ladder and len(origins) < GRID_LARGE_RAYS:
+                    # the ratio needs a large workload's time per ray: the 'tiny' and 'quick'
+                    # scales' few rays per scene would themselves be a small batch
+                    go, gd = uniform_rays(mesh, GRID_LARGE_RAYS, seed=gseed)
+                jobs[kind] = (lambda go=go, gd=gd, cfg=cfg: measure(mesh, "grid", go, gd, threads=threads, config=cfg))
             else:
-                rec.kinds[kind] = measure(mesh, kind, origins, directions, threads=threads, config=(configs or {}).get(kind))
+                jobs[kind] = (lambda kind=kind, cfg=cfg: measure(mesh, kind, origins, directions, threads=threads, config=cfg))
+        rec.kinds = {k: median_measurement(v) for k, v in interleaved(jobs, repeats).items()}
         records.append(rec)
         del mesh
     fits = fit(records, fitted, model=model, spread=spread)
+    counts = fit_counts(records, ("grid",) + tuple(fitted), spread)
     duration = time.perf_counter() - t_start
     if progress is not None:
         progress(1.0, f"calibrated {', '.join(fits)} on {len(records)} scenes in {duration:.1f} s")
     return Calibration(
         fits=fits, scenes=records, model=model, spread=tuple(spread), rays_per_scene=m_rays, scale=scale,
         threads=threads, duration_s=duration, created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        source="measured", notes=notes,
+        source="measured", notes=notes, counts=counts,
     )
