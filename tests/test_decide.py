@@ -105,3 +105,70 @@ def test_measure_break_even_takes_medians_of_the_repeats_and_reports_their_sprea
     if len(fin) >= 2:
         assert be.repeatability("bvh") == pytest.approx(100 * (max(fin) - min(fin)) / np.median(fin))
     assert set(be.structures) == {"grid", "bvh"}
+
+
+# -- the count model (issue 14) -------------------------------------------------------------------
+
+def test_grid_work_counts_cells_and_references_on_a_hand_grid():
+    """A 4 x 1 x 1 grid of unit cells holding 1, 2, 0, 3 references; rays along +x from
+    x = -1.  A miss crosses all four cells (16 points, 4 per cell: mean 1.5 references); a
+    hit at x = 1.5 stops in the second cell (11 points in the first, 5 in the second)."""
+    from types import SimpleNamespace
+
+    from hybrid_raycast.core.decide.work import grid_work
+
+    g = SimpleNamespace(lo=np.zeros(3), cell_size=np.ones(3), res=np.array([4, 1, 1]),
+                        cell_start=np.array([0, 1, 3, 3, 6]))
+    o = np.array([[-1.0, 0.5, 0.5], [-1.0, 0.5, 0.5]])
+    d = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    w = grid_work(g, o[:1], d[:1], np.array([np.inf]))
+    assert (w.cells, w.refs, w.hit) == (4.0, 6.0, 0.0)
+    assert w.length == pytest.approx(4 / math.sqrt(18), rel=1e-12)
+    w = grid_work(g, o[1:], d[1:], np.array([2.5]))
+    assert (w.cells, w.refs, w.hit) == (2.0, 2 * 21 / 16, 1.0)
+    both = grid_work(g, o, d, np.array([np.inf, 2.5]))
+    assert (both.cells, both.refs, both.hit) == (3.0, (6 + 2 * 21 / 16) / 2, 0.5)
+
+
+def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
+    rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, 1e-7 + 2e-8 * c + 5e-9 * f)
+            for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
+    f = cost.CountFit.fit(rows, ("1", "cells", "refs"))
+    assert f.coef == pytest.approx((1e-7, 2e-8, 5e-9), rel=1e-9)
+    assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
+    assert f.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
+    t = cost.terms(1 << 10, {"cells": 3, "refs": 4, "hit": 0.25, "length": 0.5})
+    assert (t["log2n"], t["hit_log2n"], t["length_log2n"]) == (10.0, 2.5, 5.0)
+
+
+def test_nonneg_fit_drops_a_term_that_would_be_negative():
+    x = np.array([[1, 1.0], [1, 2.0], [1, 3.0]])
+    y = np.array([3.0, 2.0, 1.0])  # falling with x: the slope would be negative
+    b = cost.nonneg_relative_lsq(x, y)
+    assert b[1] == 0.0 and b[0] > 0
+
+
+def test_a_plan_with_a_count_model_repeats_exactly_and_uses_the_counts():
+    from hybrid_raycast.core import plan, scenes as S
+
+    cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                      counts={"grid": cost.CountFit(("1", "cells", "refs"), (1e-7, 3e-8, 2e-8), 0.8, 1.25, 5),
+                              "bvh": cost.CountFit(("1", "log2n"), (2e-7, 1e-7), 0.9, 1.1, 5)})
+    mesh = S.torus(3000)
+    plans = [plan(mesh, 1e6, cal, samples=2000, seed=3) for _ in range(5)]
+    w = plans[0].work
+    g = 1e-7 + 3e-8 * w["cells"] + 2e-8 * w["refs"]
+    assert plans[0].grid_per_ray == pytest.approx(g, rel=1e-12)
+    assert plans[0].candidates["grid"].per_ray_low == pytest.approx(0.8 * g, rel=1e-12)
+    assert plans[0].candidates["bvh"].per_ray == pytest.approx(2e-7 + 1e-7 * math.log2(mesh.triangle_count), rel=1e-12)
+    assert len({p.break_even for p in plans}) == 1 and len({p.grid_per_ray for p in plans}) == 1
+    assert plans[0].to_dict()["work"] == w
+
+
+def test_count_model_survives_save_and_load(tmp_path):
+    from hybrid_raycast.core.decide import load
+
+    cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+    back = load(cal.save(tmp_path / "c.json"))
+    assert back.counts == cal.counts

@@ -456,3 +456,56 @@ __all__ = [
     "never_agreement", "nlog2n", "online_switch", "pick_accuracy", "reestimate", "relative_error", "sample_ratio",
     "speedup_summary", "strategy_totals", "true_break_even", "with_grid_estimate",
 ]
+
+
+# -- count models: held-out break-even errors (issue 14) ------------------------------------------
+
+def _ratio_of(records, k: int) -> float:
+    """Median large-workload / K-sample grid time per ray over ``records`` (as the
+    calibration's ``grid_sample_ratio``), 1 when none was measured."""
+    from .calfile import Calibration
+
+    return Calibration({}, scenes=list(records)).grid_sample_ratio(k)[0] if records else 1.0
+
+
+def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: str = "counts", terms_of=None,
+                    model: str = "affine", samples: int = 16384) -> list[dict]:
+    """Fit on ``train`` (SceneRecords), estimate each of ``test`` and compare its break-even
+    with the one measured in its own record.
+
+    grid: 'counts' (the count model on the record's work) or 'sample' (its K-sample time
+    times the training scenes' ratio, the estimator before issue 14); hds: 'counts' or
+    'affine' (a + c log2 N) for the structure's time per ray.  Its build is always the
+    calibration model's (``model``)."""
+    from .cost import fit_counts
+
+    fits = model_functions(model)[0]
+    est_fn = model_functions(model)[1]
+    f = fits([r for r in train if kind in r.kinds], kind, DEFAULT_SPREAD)
+    counts = fit_counts(train, ("grid", kind), terms_of=terms_of)
+    ratio = _ratio_of(train, samples)
+    out = []
+    for rec in test:
+        if kind not in rec.kinds or "grid" not in rec.kinds:
+            continue
+        e = est_fn(f, kind, rec.triangles)
+        if grid == "counts":
+            t_g = counts["grid"].predict(rec.triangles, rec.work)
+        else:
+            t_g = rec.grid_samples.get(samples, math.nan) * ratio
+        t_h = counts[kind].predict(rec.triangles, rec.work) if hds == "counts" else e.per_ray
+        g, h = rec.kinds["grid"], rec.kinds[kind]
+        r_c, r_est = break_even(h.build_time, g.per_ray, h.per_ray), break_even(e.build, t_g, t_h)
+        rel = (lambda a, b: 100.0 * (a - b) / b if b > 0 else math.nan)
+        out.append({"name": rec.name, "triangles": rec.triangles, "R_C": r_c, "R_est": r_est,
+                    "error": relative_error(r_est, r_c), "grid_error": rel(t_g, g.per_ray),
+                    "per_ray_error": rel(t_h, h.per_ray), "build_error": rel(e.build, h.build_time)})
+    return out
+
+
+def leave_one_out(records, **kw) -> list[dict]:
+    """``held_out_errors`` with each record left out of the fit in turn."""
+    out = []
+    for i, rec in enumerate(records):
+        out += held_out_errors([r for j, r in enumerate(records) if j != i], [rec], **kw)
+    return out
