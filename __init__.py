@@ -1,17 +1,18 @@
 """Hybrid Ray Cast: grid or BVH for the rays you are about to shoot (Blender extension).
 
 Layout: ``core/`` computes (pure numpy), ``operators/`` bridges Blender and core,
-``ui/`` only draws and calls; ``api.cast`` is the script interface.  ``register()``
+``ui/`` only draws and calls; ``settings.py`` (``scene.hybrid_raycast``) and ``budget.py``
+are what operators and ui share; ``api.cast`` is the script interface.  ``register()``
 walks one tuple of classes, then adds the scene property, the change handlers, the
 plot's preview collection and the ``-c hybrid_raycast`` command-line command.
 """
 
 import bpy
 
-from . import api, operators, ui  # noqa: F401  (api: reachable as <package>.api)
+from . import api, operators, settings, ui  # noqa: F401  (api: reachable as <package>.api)
 from .operators import cli, state
+from .settings import HybridRaycastSettings
 from .ui import plot
-from .ui.properties import HybridRaycastSettings
 
 classes = (
     HybridRaycastSettings,

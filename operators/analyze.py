@@ -18,15 +18,15 @@ import bpy
 import numpy as np
 
 from .. import core
+from ..budget import ray_budget
+from ..settings import BREAK_EVEN_NEVER as NEVER
 from . import state
-from .budget import ray_budget
 from .calibrate import load_calibration
 from .extract import NoGeometryError, scene_mesh, scene_summary
 from .jobs import BadInput, InvalidGeometry, Job, JobOperator, NoGeometry
 from .summary import store_summary
 
 RECORD_FORMAT = 1
-NEVER = 3.4028234663852886e38  # ui.properties.BREAK_EVEN_NEVER (float32's largest value)
 
 
 # -- the evaluated scene ---------------------------------------------------------------
@@ -183,7 +183,7 @@ def results_json(props) -> dict:
 # -- the job -------------------------------------------------------------------------------
 
 def settings_of(props) -> dict:
-    from ..ui.properties import current_settings
+    from ..settings import current_settings
 
     return current_settings(props)
 

@@ -17,13 +17,28 @@ Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-
 stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
 given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``,
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
-NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``.
-The .blend itself is never saved.
+NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
+``--save [PATH]``.
+
+``--json -`` puts the JSON, and nothing else, on stdout: while the command runs, file
+descriptor 1 points at stderr, so every message (ours, Blender's own C-level prints such
+as "Read blend" and "Info: Saved", Python prints) goes to stderr; the JSON is written to
+the original stdout at the end.  For the camera passes the JSON's ``trace.passes`` holds
+the depth image's ``near``/``far`` (``z = far - v * (far - near)``) and the object-ID
+table (index, name, RGB colour in [0, 1]; the nearest table colour names a pixel).
+
+The .blend is saved only with ``--save``: to the loaded file, or to PATH (a .blend).
+Blender writes ``PATH@`` and renames it over PATH (checked with strace on bpy 5.0.1;
+an existing file becomes ``PATH.blend1`` when the save-versions preference is on), so
+a failed save never leaves a half-written file.  The AO bake and the results in
+``scene.hybrid_raycast`` are kept; camera passes are generated images, so write them
+with ``--output``.
 
 Exit codes (one line on stderr says why):
     0  success
     1  internal error (a bug: the traceback is printed too)
-    2  bad arguments (unknown option or command, --rays 0, missing --blend file, ...)
+    2  bad arguments (unknown option or command, --rays 0 or inf, a missing or non-.blend
+       file before -c or in --blend, ...)
     3  no geometry (nothing visible and render-enabled has triangles)
     4  unwritable path (--json, --output or the calibration file)
     5  invalid geometry (NaN or infinite vertex coordinates)
@@ -33,7 +48,10 @@ Exit codes (one line on stderr says why):
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import json
+import math
 import os
 import sys
 import traceback
@@ -41,6 +59,7 @@ from pathlib import Path
 
 import bpy
 
+from ..settings import RAYS_MAX
 from . import calibrate as calibrate_mod
 from .analyze import analysis_job, apply_analysis, results_json
 from .calibrate import apply_calibration, calibration_job
@@ -69,14 +88,19 @@ class _Exit(Exception):
         self.status = status
 
 
-def _positive(kind):
+def _positive(kind, most=None):
     def conv(text):
         try:
-            value = kind(float(text)) if kind is int else kind(text)
+            number = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(number):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+        value = kind(number)
         if not value > 0:
             raise argparse.ArgumentTypeError(f"must be greater than 0, got {text}")
+        if most is not None and value > most:
+            raise argparse.ArgumentTypeError(f"must be at most {most:g}, got {text}")
         return value
     return conv
 
@@ -87,7 +111,7 @@ def parser() -> argparse.ArgumentParser:
                 epilog="exit codes: 0 ok, 1 internal error, 2 bad arguments, 3 no geometry, "
                        "4 unwritable path, 5 invalid geometry, 6 nothing to trace")
     p.add_argument("command", choices=COMMANDS)
-    p.add_argument("--rays", type=_positive(float), help="expected rays (sets a custom ray budget)")
+    p.add_argument("--rays", type=_positive(float, RAYS_MAX), help="expected rays (sets a custom ray budget)")
     p.add_argument("--json", help="write the JSON here ('-': stdout)")
     p.add_argument("--output", help="folder for the plot, the passes and (without --json) the JSON")
     p.add_argument("--blend", help="open this .blend first")
@@ -101,15 +125,101 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
     p.add_argument("--calibration", help="the calibration file to read and write")
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="quick", help="calibrate: how much to measure")
+    p.add_argument("--save", nargs="?", const="", metavar="PATH",
+                   help="save the .blend afterwards (the AO bake, the results): to PATH, or the loaded file")
     return p
 
 
 def handler(argv) -> int:
-    """What Blender calls with the arguments after ``-c hybrid_raycast``; the exit code."""
-    return main(list(argv))
+    """What Blender calls with the arguments after ``-c hybrid_raycast``; the exit code.
+    Blender exits right after, so with ``--json -`` its stdout stays on stderr."""
+    return main(list(argv), blender_argv=list(sys.argv), keep_stdout_on_stderr=True)
 
 
-def main(argv, stdout=None, stderr=None) -> int:
+#: Blender options that take values (the values are not files to open), with how many;
+#: from ``blender --help`` of 4.3.2.  Only the arguments before ``-c`` are looked at.
+_BLENDER_OPTION_VALUES = {
+    **dict.fromkeys(("-f", "--render-frame", "-s", "--frame-start", "-e", "--frame-end", "-j", "--frame-jump",
+                     "-o", "--render-output", "-E", "--engine", "-t", "--threads", "-F", "--render-format",
+                     "-x", "--use-extension", "-S", "--scene", "-P", "--python", "--python-text",
+                     "--python-expr", "--python-exit-code", "--addons", "--app-template", "--log",
+                     "--log-level", "--log-file", "--debug-value", "--gpu-backend", "-setaudio",
+                     "--cycles-device", "--verbose", "--gpu-compilation-subprocesses",
+                     "--env-system-datafiles", "--env-system-scripts", "--env-system-extensions",
+                     "--env-system-python"), 1),
+    "-p": 4, "--window-geometry": 4,
+}
+
+
+def _files_before_command(blender_argv) -> list[str]:
+    """The files Blender was asked to open: the arguments before ``-c``/``--command``
+    that are neither options nor an option's values."""
+    files, skip = [], 0
+    for a in blender_argv[1:]:
+        if a in ("-c", "--command"):
+            break
+        if skip:
+            skip -= 1
+        elif a.startswith("-"):
+            skip = _BLENDER_OPTION_VALUES.get(a, 0)
+        else:
+            files.append(a)
+    return files
+
+
+def _check_opened_file(blender_argv):
+    """A file given before ``-c`` that Blender did not open is a bad argument: Blender
+    itself goes on with the startup scene (a missing path, a .txt, a truncated .blend)."""
+    files = _files_before_command(blender_argv) if blender_argv else []
+    if not files:
+        return
+    path = Path(files[-1])
+    if not path.is_file():
+        raise BadInput(f"bad arguments: {path}: no such file")
+    loaded = bpy.data.filepath
+    if not loaded or not Path(loaded).is_file() or not os.path.samefile(loaded, path):
+        raise BadInput(f"bad arguments: {path}: not a .blend file Blender could open")
+
+
+@contextlib.contextmanager
+def _stdout_on_stderr(keep: bool):
+    """Point file descriptor 1 at stderr while the command runs (Python's and Blender's
+    C-level prints alike); yields a callable that writes text to the original stdout.
+    With ``keep`` fd 1 stays on stderr afterwards and the original stdout is closed once
+    written (Blender exits next); else both are restored."""
+    original = os.dup(1)
+    os.dup2(2, 1)  # what is still buffered (Python's or C's stdout) is flushed below, to stderr
+
+    def flush_all():
+        try:
+            sys.stdout.flush()
+        except (OSError, ValueError):
+            pass
+        with contextlib.suppress(Exception):  # C stdio buffers (Blender's printf)
+            ctypes.CDLL(None).fflush(None)
+
+    def write(text: str):
+        flush_all()
+        data = text.encode("utf-8")
+        while data:
+            data = data[os.write(original, data):]
+
+    try:
+        yield write
+    finally:
+        flush_all()
+        if keep:
+            os.close(original)
+        else:
+            os.dup2(original, 1)
+            os.close(original)
+
+
+def main(argv, stdout=None, stderr=None, *, blender_argv=None, keep_stdout_on_stderr=False) -> int:
+    """Run one command; the exit code.  ``stdout``/``stderr`` default to the process's
+    (then ``--json -`` works on file descriptors, see the module docstring);
+    ``blender_argv`` is Blender's whole command line, to check the file given before -c."""
+    real = stdout is None
     stdout = stdout or sys.stdout
     stderr = stderr or sys.stderr
     command = next((a for a in argv if a in COMMANDS), "")
@@ -121,7 +231,13 @@ def main(argv, stdout=None, stderr=None) -> int:
             return e.status
         if args.calibration:
             calibrate_mod.CALIBRATION_PATH = args.calibration
-        return _run(args, stdout)
+        _check_opened_file(blender_argv)
+        if args.json != "-":
+            return _run(args, stdout, stdout.write)
+        if not real:
+            return _run(args, stderr, stdout.write)
+        with _stdout_on_stderr(keep_stdout_on_stderr) as write_json:
+            return _run(args, sys.stdout, write_json)
     except HRCError as e:
         print(f"{' '.join(filter(None, (COMMAND, command)))}: error: {e}", file=stderr, flush=True)
         return e.code
@@ -213,19 +329,65 @@ def _analyze(scene, stdout):
 
 
 def _write_plot(props, out_dir: Path) -> str:
-    from ..ui import plot
+    from ..core import plot
+    from ..settings import figures_from_props
 
-    f = plot.figures_from_props(props)
+    f = figures_from_props(props)
     try:
         return plot.write_png(out_dir / PLOT_PNG, plot.plot_rgba(f, 640, 480))
     except OSError as e:
         raise Unwritable(f"unwritable path: {out_dir / PLOT_PNG}: {e.strerror or e}") from None
 
 
-def _run(args, stdout) -> int:
+def _save_target(args) -> Path | None:
+    """Where ``--save`` writes (checked before any work); None without ``--save``."""
+    if args.save is None:
+        return None
+    target = args.save or bpy.data.filepath
+    if not target:
+        raise BadInput("bad arguments: --save: no .blend is loaded; give --save PATH")
+    path = Path(target)
+    if path.suffix.lower() != ".blend":
+        raise BadInput(f"bad arguments: --save {path}: not a .blend path")
+    if path.is_dir():
+        raise Unwritable(f"unwritable path: --save {path} is a folder")
+    _writable_dir(path.parent if str(path.parent) else Path("."), "the folder of --save")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise Unwritable(f"unwritable path: --save {path} is not writable")
+    return path.resolve()
+
+
+def _save(path: Path) -> str:
+    # Blender writes "<path>@" and renames it over <path> (see the module docstring)
+    try:
+        bpy.ops.wm.save_as_mainfile(filepath=str(path), check_existing=False)
+    except RuntimeError as e:
+        raise Unwritable(f"unwritable path: --save {path}: {str(e).strip().splitlines()[-1]}") from None
+    return str(path)
+
+
+def _passes_json() -> dict:
+    """How to read the camera pass images back: the depth range and the object-ID table."""
+    from .passes import DEPTH, OBJECT_ID, object_id_colors
+
+    depth, ids = bpy.data.images[DEPTH], bpy.data.images[OBJECT_ID]
+    names = json.loads(ids.get("object_names", "[]"))
+    colors = object_id_colors(len(names))
+    return {
+        "depth": {"near": float(depth.get("near", 0.0)), "far": float(depth.get("far", 0.0)),
+                  "decode": "z = far - v * (far - near) where alpha > 0 (view-axis depth, scene units)"},
+        # an 8-bit PNG holds each colour to within one step (Blender's own rounding): match the nearest
+        "object_ids": [{"index": i, "name": n, "color": [round(float(c), 6) for c in colors[i]]}
+                       for i, n in enumerate(names)],
+    }
+
+
+def _run(args, stdout, write_json) -> int:
     out_dir = _writable_dir(Path(args.output), "--output") if args.output else None
     json_path = _json_target(args)
     if args.command == "calibrate":
+        if args.save is not None:
+            raise BadInput("bad arguments: --save: calibrate changes no scene")
         if args.blend:
             _scene(args)
         result = run_sync(calibration_job(Job(), scale=args.scale))
@@ -234,6 +396,7 @@ def _run(args, stdout) -> int:
         doc = {"command": "calibrate", "path": str(result["path"]), "calibration": cal.to_dict()}
     else:
         scene = _scene(args)
+        save_path = _save_target(args)
         props = scene.hybrid_raycast
         _apply_settings(props, args)
         if args.command == "analyze" or (args.command in ("report", "trace") and (not props.has_results or props.stale)):
@@ -248,6 +411,10 @@ def _run(args, stdout) -> int:
                      "rays": len(result["rays"]["origins"]), "build_time": result["build_time"],
                      "trace_time": result["trace_time"], "rays_traced_after_plan": result["traced"],
                      "plan": result["plan"].to_dict()}
+            if result["workload"] == "CAMERA":
+                trace["passes"] = _passes_json()
+            elif save_path is None:
+                _say(stdout, [("INFO", "the AO bake is in this session only: pass --save [PATH] to keep it")])
             if result["workload"] == "CAMERA" and out_dir is not None:
                 from .passes import DEPTH, NORMAL, OBJECT_ID, save_image
 
@@ -262,6 +429,8 @@ def _run(args, stdout) -> int:
         doc["command"] = args.command
         if trace is not None:
             doc["trace"] = trace
+        if save_path is not None:
+            files["blend"] = _save(save_path)
         if files:
             doc["files"] = files
         line = f"decision {props.decision}: {doc['summary_line']}"
@@ -271,7 +440,7 @@ def _run(args, stdout) -> int:
         print(f"{COMMAND} {args.command}: {line}", file=stdout, flush=True)
     text = json.dumps(doc, indent=2, default=str)
     if args.json == "-":
-        print(text, file=stdout, flush=True)
+        write_json(text + "\n")
     elif json_path is not None:
         try:
             json_path.write_text(text, encoding="utf-8")

@@ -24,6 +24,8 @@ import traceback
 
 import bpy
 
+from ..settings import RUNNING
+
 
 class HRCError(Exception):
     """A failure to report in one line; ``code`` is the CLI exit status."""
@@ -55,10 +57,6 @@ class NothingToTrace(HRCError):
 
 class Cancelled(HRCError):
     code = 130
-
-
-#: what the panel shows while a modal job runs: {"label", "fraction", "text"}; empty when idle
-RUNNING: dict = {}
 
 
 class Job:

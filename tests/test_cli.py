@@ -2,7 +2,14 @@
 
 import io
 import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
@@ -87,7 +94,8 @@ def test_report_reuses_a_fresh_analysis_and_reanalyzes_a_stale_one(fresh, addon,
     first = props().analyzed_at, props().last_analysis_json
     code, out, err = run(addon, "report", "--json", "-")
     assert code == 0, err
-    doc = json.loads(out[out.index("{"):])
+    doc = json.loads(out)  # nothing but the JSON on stdout; the messages went to stderr
+    assert "hybrid_raycast report: decision" in err
     assert props().last_analysis_json == first[1], "report re-analyzed a fresh analysis"
     assert doc["decision"] == props().decision and doc["stale"] is False
     bpy.data.objects["Cube"].location.z += 1
@@ -131,6 +139,14 @@ def test_blend_argument_opens_a_saved_file(fresh, addon, tmp_path):
 @pytest.mark.parametrize("argv, code, words", [
     (["explode"], 2, "invalid choice"),
     (["analyze", "--rays", "0"], 2, "greater than 0"),
+    (["analyze", "--rays", "-5"], 2, "greater than 0"),
+    (["analyze", "--rays", "inf"], 2, "finite"),
+    (["analyze", "--rays", "nan"], 2, "finite"),
+    (["analyze", "--rays", "1e16"], 2, "at most 1e+15"),
+    (["analyze", "--density", "inf"], 2, "finite"),
+    (["calibrate", "--save"], 2, "changes no scene"),
+    (["analyze", "--save"], 2, "no .blend is loaded"),
+    (["analyze", "--save", "/tmp/x.txt"], 2, "not a .blend path"),
     (["analyze", "--rays", "many"], 2, "not a number"),
     (["analyze", "--frobnicate"], 2, "unrecognized arguments"),
     (["analyze", "--blend", "/nonexistent/x.blend"], 2, "no such file"),
@@ -183,3 +199,186 @@ def test_trace_without_a_camera_exits_6(fresh, addon):
     assert got == 6 and "no camera" in one_line(err)
     got, out, err = run(addon, "trace", "--workload", "ao", "--object", "Nope")
     assert got == 6 and "no mesh to bake" in one_line(err)
+
+
+# -- output a program can read ---------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_SUBPROCESS = textwrap.dedent("""
+    import os, sys
+    sys.path.insert(0, {scripts!r})
+    import bpy
+    from _package import load_addon
+    addon = load_addon()
+    addon.register()
+    bpy.ops.wm.open_mainfile(filepath={blend!r})       # prints "Read blend" (Blender's C printf)
+    print("python print before", flush=True)
+    sys.stdout.flush(); os.write(1, b"<<<")            # stdout from here on is the command's
+    cal = ["--calibration", {cal!r}]
+    code = addon.operators.cli.main(["analyze", "--json", "-", "--rays", "1e6", *cal])
+    print("between", flush=True)                       # fd 1 restored: main() was not Blender's handler
+    sys.argv = ["blender", "-b", {blend!r}, "-c", "hybrid_raycast"]
+    code2 = addon.operators.cli.handler(["trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "4",
+                                         "--json", "-", "--save", *cal])
+    print("after the handler", flush=True)             # Blender exits next: this goes to stderr
+    sys.exit(code * 16 + code2)
+""")
+
+
+def test_json_dash_puts_only_the_json_on_stdout_even_blenders_own_prints(fresh, addon, tmp_path):
+    """Blender's C-level prints ("Read blend", "Info: Saved") and the add-on's messages go to
+    stderr while a ``--json -`` command runs; stdout holds the JSON and nothing else."""
+    simple_scene()
+    blend = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    script = _SUBPROCESS.format(scripts=str(ROOT / "scripts"), blend=str(blend), cal=str(tmp_path / "absent.json"))
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert p.returncode == 0, f"exit {p.returncode} (analyze*16 + trace)\n{p.stderr[-3000:]}"
+    head, sep, tail = p.stdout.partition("<<<")
+    assert sep and "Read blend" in head, "the probe did not see Blender's own print on stdout before the command"
+    first, between, second = tail.partition("between\n")
+    assert between, f"stdout after main() was not restored: {tail[:500]!r}"
+    a, t = json.loads(first), json.loads(second)  # each part is one JSON document, nothing else
+    assert a["command"] == "analyze" and a["decision"] in {"GRID", "BVH", "EMBREE"}
+    assert t["command"] == "trace" and t["trace"]["workload"] == "AO" and t["files"]["blend"] == str(blend)
+    assert "after the handler" in p.stderr and "after the handler" not in p.stdout
+    assert "Saved" in p.stderr, "Blender's own 'Info: Saved' print should have gone to stderr"
+    assert "hybrid_raycast analyze: decision" in p.stderr and "hybrid_raycast: info: traced" in p.stderr
+
+
+def _decode(path):
+    img = bpy.data.images.load(str(path))
+    img.colorspace_settings.name = "Non-Color"  # the bytes as written, no sRGB decoding
+    w, h = img.size
+    a = np.empty(w * h * 4, np.float32)
+    img.pixels.foreach_get(a)
+    return a.reshape(h, w, 4)[::-1]  # top row first
+
+
+def test_trace_json_decodes_the_depth_and_object_id_pngs_like_scene_ray_cast(fresh, addon, tmp_path):
+    """A program holding only the PNGs and the JSON recovers each pixel's depth and object:
+    compared with Blender's own ``scene.ray_cast`` through the same pixel centres."""
+    scene = simple_scene(resolution=(40, 30))
+    add_cube("Box", 1.0, (2.2, 0.0, -0.2))
+    bpy.context.view_layer.update()
+    code, out, err = run(addon, "trace", "--output", str(tmp_path), "--json", str(tmp_path / "t.json"))
+    assert code == 0, err
+    passes = json.loads((tmp_path / "t.json").read_text())["trace"]["passes"]
+    near, far = passes["depth"]["near"], passes["depth"]["far"]
+    table = passes["object_ids"]
+    assert 0 < near < far and {e["name"] for e in table} == {"Cube", "Ground", "Box"}
+    assert [e["index"] for e in table] == list(range(len(table)))
+    depth = _decode(tmp_path / "hybrid_raycast_depth.png")
+    ids = _decode(tmp_path / "hybrid_raycast_object_id.png")
+    colors = np.array([e["color"] for e in table], np.float64)
+
+    from hybrid_raycast.operators.passes import camera_workload
+
+    deps = bpy.context.evaluated_depsgraph_get()
+    rays = camera_workload(scene, deps)
+    cam = scene.camera.matrix_world
+    view = -np.array(cam.to_3x3().col[2])  # the camera looks down its -Z
+    checked = wrong_object = 0
+    worst_depth = 0.0
+    for k in range(0, 40 * 30, 7):
+        r, c = divmod(k, 40)
+        o, d = rays["origins"][k].astype(np.float64), rays["directions"][k].astype(np.float64)
+        ok, loc, _n, _i, ob, _m = scene.ray_cast(deps, o.tolist(), d.tolist(), distance=float(rays["tmax"][k]))
+        assert (ids[r, c, 3] > 0.5) == ok, f"pixel ({r}, {c}): hit {ok} in Blender, alpha {ids[r, c, 3]}"
+        if not ok:
+            continue
+        dist = np.abs(colors - ids[r, c, :3]).max(axis=1)
+        assert (dist <= 1.5 / 255).sum() == 1, f"pixel ({r}, {c}): colour {ids[r, c, :3]} matches {dist.min()}"
+        wrong_object += table[int(dist.argmin())]["name"] != ob.name
+        z_ref = float(np.dot(np.array(loc) - o, view))
+        z = far - depth[r, c, 0] * (far - near)
+        worst_depth = max(worst_depth, abs(z - z_ref))
+        checked += 1
+    assert checked > 50
+    assert wrong_object == 0, f"{wrong_object} of {checked} pixels decode to another object than scene.ray_cast's"
+    assert worst_depth <= (far - near) / 255 + 1e-4, f"decoded depth off by {worst_depth} (8-bit step {(far - near) / 255})"
+
+
+def _ao(ob):
+    a = ob.data.color_attributes["HRC AO"]
+    v = np.empty(len(a.data) * 4, np.float32)
+    a.data.foreach_get("color", v)
+    return v.reshape(-1, 4)[:, 0]
+
+
+def test_trace_ao_save_keeps_the_bake_in_the_loaded_blend_or_a_new_path(fresh, addon, tmp_path):
+    simple_scene()
+    blend = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8")
+    assert code == 0, err
+    assert "pass --save" in out, "an unsaved bake should say how to keep it"
+    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8", "--save")
+    assert code == 0, err
+    baked = _ao(bpy.data.objects["Cube"])
+    other = tmp_path / "sub" / "copy.blend"
+    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8",
+                         "--save", str(other), "--json", str(tmp_path / "t.json"))
+    assert code == 0, err
+    assert json.loads((tmp_path / "t.json").read_text())["files"]["blend"] == str(other)
+    for path in (blend, other):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        bpy.ops.wm.open_mainfile(filepath=str(path))
+        ob = bpy.data.objects["Cube"]
+        assert "HRC AO" in ob.data.color_attributes, f"{path.name} has no bake"
+        got = _ao(ob)
+        assert got.shape == baked.shape and np.all((got >= 0) & (got <= 1)) and got.max() > 0
+        assert np.allclose(got, baked), f"{path.name}: the saved bake differs from the one computed"
+    left = sorted(p.name for p in tmp_path.rglob("*@"))
+    assert not left, f"Blender's temporary save files were left behind: {left}"
+
+
+def test_save_to_an_unwritable_place_exits_4_before_any_work(fresh, addon, tmp_path):
+    simple_scene()
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    for target in (blocker / "x.blend", tmp_path):
+        got, out, err = run(addon, "analyze", "--save", str(target) if target != tmp_path else str(tmp_path / "d.blend"))
+        if target == tmp_path:
+            assert got == 0, err  # a fresh path in a writable folder is fine
+            continue
+        assert got == 4 and "unwritable path" in one_line(err), (got, err)
+    (tmp_path / "dir.blend").mkdir()
+    got, out, err = run(addon, "analyze", "--save", str(tmp_path / "dir.blend"))
+    assert got == 4 and "is a folder" in one_line(err)
+
+
+def test_files_before_c_are_the_arguments_blender_opened():
+    from hybrid_raycast.operators.cli import _files_before_command
+
+    assert _files_before_command(["blender", "-b", "a.blend", "-c", "hybrid_raycast", "analyze", "b.blend"]) == ["a.blend"]
+    assert _files_before_command(["blender", "-b", "-P", "s.py", "--python-expr", "x", "-t", "2", "-E", "CYCLES",
+                                  "--factory-startup", "f.blend", "--command", "hybrid_raycast"]) == ["f.blend"]
+    assert _files_before_command(["blender", "-p", "0", "0", "10", "10", "g.blend", "-c", "x"]) == ["g.blend"]
+    assert _files_before_command(["blender", "-b", "-c", "hybrid_raycast", "analyze"]) == []
+
+
+def test_a_missing_or_non_blend_file_before_c_exits_2_with_one_line(fresh, addon, tmp_path):
+    """Blender goes on with the startup scene when the file before -c cannot be opened;
+    the command refuses instead of analysing that scene."""
+    simple_scene()
+    text = tmp_path / "notes.txt"
+    text.write_text("not a blend")
+    blend = tmp_path / "ok.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.read_factory_settings(use_empty=True)  # what Blender has after failing to open a file
+    for path, words in ((tmp_path / "missing.blend", "no such file"), (text, "not a .blend file")):
+        out, err = io.StringIO(), io.StringIO()
+        argv = ["blender", "-b", str(path), "-c", "hybrid_raycast", "analyze"]
+        got = addon.operators.cli.main(["analyze"], stdout=out, stderr=err, blender_argv=argv)
+        line = one_line(err.getvalue())
+        assert got == 2 and words in line and str(path) in line, line
+    got, out, err = run(addon, "analyze", "--blend", str(text))
+    assert got == 2 and "cannot open" in one_line(err), err
+    assert not props().has_results, "nothing may be analysed after a bad file"
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    out, err = io.StringIO(), io.StringIO()
+    got = addon.operators.cli.main(["analyze"], stdout=out, stderr=err,
+                                   blender_argv=["blender", "-b", str(blend), "-c", "hybrid_raycast", "analyze"])
+    assert got == 0, err.getvalue()

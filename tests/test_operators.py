@@ -266,7 +266,7 @@ def test_operators_that_change_data_are_undoable(addon):
 
 
 def test_every_property_has_a_name_description_and_sane_bounds(addon):
-    props_cls = addon.ui.properties.HybridRaycastSettings
+    props_cls = addon.settings.HybridRaycastSettings
     problems = []
     for name, p in props_cls.__annotations__.items():
         kw = p.keywords

@@ -166,7 +166,8 @@ def test_ao_without_a_mesh_says_so(fresh):
 
 
 def test_plot_has_the_curves_the_interval_and_the_break_even_marker(addon, tmp_path):
-    plot = addon.ui.plot
+    from hybrid_raycast.core import plot
+
     f = {"grid_per_ray": 1e-6, "candidates": {"bvh": (0.1, 1e-7)}, "expected_rays": 1e7,
          "break_even": 0.1 / (1e-6 - 1e-7), "break_even_low": 5e4, "break_even_high": 3e5}
     img = plot.plot_rgba(f, 300, 240)
@@ -186,7 +187,8 @@ def test_plot_has_the_curves_the_interval_and_the_break_even_marker(addon, tmp_p
 
 
 def test_plot_with_an_infinite_break_even_has_no_marker_and_no_band(addon):
-    plot = addon.ui.plot
+    from hybrid_raycast.core import plot
+
     f = {"grid_per_ray": 1e-7, "candidates": {"bvh": (0.1, 1e-6)}, "expected_rays": 1e6,
          "break_even": None, "break_even_low": None, "break_even_high": None}
     img = plot.plot_rgba(f, 200, 200)

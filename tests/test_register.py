@@ -33,7 +33,7 @@ def test_register_unregister_twice_leaves_nothing_behind():
 
 def test_every_setting_has_a_name_and_description():
     addon = load_addon()
-    props = addon.ui.properties.HybridRaycastSettings.__annotations__
+    props = addon.settings.HybridRaycastSettings.__annotations__
     missing = [
         name for name, p in props.items()
         if not p.keywords.get("name") or not p.keywords.get("description")

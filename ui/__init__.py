@@ -1,4 +1,4 @@
-"""Drawing only: the sidebar panels, the scene properties they show, the plot."""
+"""Drawing only: the sidebar panels and the plot preview (they draw ``settings``; never import ``operators``)."""
 
 from .panel import (
     VIEW3D_PT_hybrid_raycast,

@@ -9,7 +9,7 @@ and tracing (camera passes, AO bake).  Everything drawn here is also a property 
 
 import bpy
 
-from ..operators import jobs
+from ..settings import RUNNING, figures_from_props
 from . import plot
 
 
@@ -72,11 +72,11 @@ class VIEW3D_PT_hybrid_raycast(_Base, bpy.types.Panel):
             col.prop(props, "custom_rays", text="Rays")
 
         # -- run ---------------------------------------------------------------------
-        if jobs.RUNNING:
+        if RUNNING:
             box = layout.box()
-            text = f"{jobs.RUNNING.get('label', '')}: {jobs.RUNNING.get('text', '')}"
+            text = f"{RUNNING.get('label', '')}: {RUNNING.get('text', '')}"
             if hasattr(box, "progress"):
-                box.progress(factor=float(jobs.RUNNING.get("fraction", 0.0)), type="BAR", text=text)
+                box.progress(factor=float(RUNNING.get("fraction", 0.0)), type="BAR", text=text)
             else:
                 box.label(text=text, icon="TIME")
             box.label(text="Esc cancels", icon="CANCEL")
@@ -108,7 +108,7 @@ class VIEW3D_PT_hybrid_raycast(_Base, bpy.types.Panel):
         if not props.decision_certain:
             sub.label(text="Expected rays inside the interval: uncertain", icon="QUESTION")
 
-        icon = plot.panel_preview(scene.name, plot.figures_from_props(props))
+        icon = plot.panel_preview(scene.name, figures_from_props(props))
         if icon:
             layout.template_icon(icon_value=icon, scale=10.0)
             legend = layout.row(align=True)

@@ -4,7 +4,9 @@ Run with plain python3 inside the rootfs after checks.py saved the .blend files:
     python3 check_cli.py WORK
 The extension is enabled in the user preferences (installed with `-e`), which is what
 registers the command.  Checks the exit codes (0, and 2-6 for each failure, with one
-line from the add-on on stderr) and the JSON of every command.  Writes
+line from the add-on on stderr; a missing or non-.blend file before -c and --rays inf
+exit 2), the JSON of every command, that ``--json -`` leaves nothing but the JSON on
+stdout, and that ``trace --workload ao --save`` writes the bake into the loaded file.  Writes
 real_blender_cli.json; exits 1 on the first failure.
 """
 
@@ -62,14 +64,49 @@ check("--rays sets the budget", tdoc["expected_rays"] == 1e7 and tdoc["budget"][
 
 code, out, err, p = blender("demo.blend", "report", "--json", "-")
 check("report exits 0", code == 0, f"rc={code} {err}")
-rdoc = json.loads(out[out.index("{\n"):out.rindex("}") + 1])
-check("report prints the analysis JSON", rdoc["decision"] in {"GRID", "BVH", "EMBREE"} and "break_even" in rdoc)
+try:
+    rdoc = json.loads(out)  # the whole stdout: Blender's own prints and our messages are on stderr
+except ValueError:
+    rdoc = {}
+check("report --json -: stdout is the JSON alone", rdoc.get("decision") in {"GRID", "BVH", "EMBREE"} and "break_even" in rdoc,
+      repr(out[:300]))
+check("report --json -: the messages went to stderr", any("decision" in x for x in err), f"{err}")
+
+code, out, err, p = blender("demo.blend", "trace", "--json", "-")
+try:
+    tdoc = json.loads(out)
+except ValueError:
+    tdoc = {}
+passes = tdoc.get("trace", {}).get("passes", {})
+check("trace --json -: stdout is the JSON alone, with the depth range and the object-ID table",
+      code == 0 and 0 < passes.get("depth", {}).get("near", 0) < passes.get("depth", {}).get("far", 0)
+      and "Suzanne" in {e["name"] for e in passes.get("object_ids", [])},
+      f"rc={code} {err} {out[:300]!r}")
+
+# --save with no PATH writes the loaded file (Blender writes FILE@, then renames it over FILE)
+(WORK / "ao.blend").write_bytes((WORK / "nocamera.blend").read_bytes())
+code, out, err, p = blender("ao.blend", "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "4", "--save",
+                            "--json", "-")
+check("trace --workload ao --save exits 0 and says so in the JSON",
+      code == 0 and json.loads(out)["files"]["blend"] == str(WORK / "ao.blend"), f"rc={code} {err} {out[:300]!r}")
+probe = WORK / "ao_probe.txt"
+subprocess.run(["blender", "-b", str(WORK / "ao.blend"), "--python-expr",
+                f"import bpy, pathlib; pathlib.Path({str(probe)!r}).write_text("
+                "str('HRC AO' in bpy.data.objects['Cube'].data.color_attributes))"],
+               capture_output=True, text=True, timeout=300)
+check("the saved .blend holds the AO bake", probe.is_file() and probe.read_text() == "True",
+      probe.read_text() if probe.is_file() else "no probe output")
+check("no temporary save file is left", not (WORK / "ao.blend@").exists())
 
 code, out, err, p = blender(None, "calibrate", "--scale", "tiny", "--calibration", str(WORK / "cli_cal.json"))
 check("calibrate exits 0 and writes the file", code == 0 and (WORK / "cli_cal.json").is_file(), f"rc={code} {err}")
 
+(WORK / "notes.txt").write_text("not a .blend file\n")
 for name, blend, args, want, words in (
     ("bad arguments", "demo.blend", ["analyze", "--rays", "0"], 2, "greater than 0"),
+    ("infinite rays", "demo.blend", ["analyze", "--rays", "inf"], 2, "finite"),
+    ("a missing file", "missing.blend", ["analyze"], 2, "no such file"),
+    ("a non-.blend file", "notes.txt", ["analyze"], 2, "not a .blend file"),
     ("unknown command", "demo.blend", ["frobnicate"], 2, "invalid choice"),
     ("no geometry", "empty.blend", ["analyze"], 3, "no geometry"),
     ("unwritable path", "demo.blend", ["analyze", "--json", "/proc/hrc/x.json"], 4, "unwritable path"),

@@ -65,8 +65,8 @@ def write_status():
         category = getattr(region, "active_panel_category", None)
     except (StopIteration, ValueError, ReferenceError):
         category = None
-    jobs = sys.modules.get(MODULE + ".operators.jobs")
-    status = {"category": category, "running": bool(jobs and jobs.RUNNING), "has_results": p.has_results, "decision": p.decision, "triangles": p.triangle_count,
+    settings = sys.modules.get(MODULE + ".settings")
+    status = {"category": category, "running": bool(settings and settings.RUNNING), "has_results": p.has_results, "decision": p.decision, "triangles": p.triangle_count,
               "break_even": None if p.break_even_infinite else p.break_even_rays, "stale": p.stale}
     (WORK / "gui_status.json").write_text(json.dumps(status))
     return 0.5

@@ -1,4 +1,7 @@
-"""Scene settings and results: ``scene.hybrid_raycast``.
+"""Scene settings and results: ``scene.hybrid_raycast``, and the running job's status.
+
+The one module both sides share: ``operators/`` write here, ``ui/`` draws from here
+(imports run ui -> settings <- operators -> core).
 
 Scripts read the results directly, e.g.::
 
@@ -32,11 +35,12 @@ from bpy.props import (
     StringProperty,
 )
 
-from ..operators.budget import ray_budget, render_samples
+from .budget import ray_budget, render_samples
 
 #: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
 BREAK_EVEN_NEVER = 3.4028234663852886e38
-_RAYS_MAX = 1.0e15
+#: the largest expected ray count the settings store (custom_rays, expected_rays)
+RAYS_MAX = 1.0e15
 
 DECISION_ITEMS = (
     ("NONE", "None", "No analysis yet"),
@@ -46,8 +50,13 @@ DECISION_ITEMS = (
 )
 
 
+#: what the panel shows while a modal job runs: {"label", "fraction", "text"}; empty when
+#: idle.  Written only by ``operators/jobs.py``'s ``JobOperator``; one job runs at a time.
+RUNNING: dict = {}
+
+
 def _get_expected(self):
-    return min(ray_budget(self.id_data, self)["rays"], _RAYS_MAX)
+    return min(ray_budget(self.id_data, self)["rays"], RAYS_MAX)
 
 
 def _set_expected(self, value):
@@ -92,6 +101,26 @@ def stale_reason(props) -> str:
     return f"{', '.join(diff)} changed since the analysis" if diff else ""
 
 
+def figures_from_props(props) -> dict:
+    """What ``core.plot.plot_rgba`` draws, from these properties (None before any analysis)."""
+    if not props.has_results:
+        return None
+    cands = {}
+    if props.bvh_considered:
+        cands["bvh"] = (props.bvh_build_time, props.bvh_per_ray)
+    if props.embree_considered:
+        cands["embree"] = (props.embree_build_time, props.embree_per_ray)
+    return {
+        "grid_per_ray": props.grid_per_ray,
+        "candidates": cands,
+        "expected_rays": props.analyzed_rays,
+        "decision": props.decision,
+        "break_even": None if props.break_even_infinite else props.break_even_rays,
+        "break_even_low": None if props.break_even_low_infinite else props.break_even_low,
+        "break_even_high": None if props.break_even_high_infinite else props.break_even_high,
+    }
+
+
 def _get_stale(self):
     return bool(stale_reason(self))
 
@@ -119,13 +148,13 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     custom_rays: FloatProperty(
         name="Custom Rays",
         description="Rays you are about to shoot (used when the ray budget is Custom)",
-        default=1.0e6, min=0.0, max=_RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
+        default=1.0e6, min=0.0, max=RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
     )
     expected_rays: FloatProperty(
         name="Expected Rays",
         description="Rays you are about to shoot: decides whether a BVH pays for its build. "
                     "From the render settings or the custom number; setting it switches to Custom",
-        min=0.0, max=_RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
+        min=0.0, max=RAYS_MAX, soft_max=1.0e10, precision=0, step=100000,
         get=_get_expected, set=_set_expected,
     )
     path_length: FloatProperty(
@@ -206,7 +235,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         name="Certain", description="The expected rays lie outside the break-even interval, so the choice holds "
                                     "at both ends of the calibration's spread", default=False)
     analyzed_rays: FloatProperty(name="Analyzed Rays", description="Expected rays the analysis decided for",
-                                 min=0.0, max=_RAYS_MAX, precision=0)
+                                 min=0.0, max=RAYS_MAX, precision=0)
     break_even_rays: FloatProperty(
         name="Break-even Rays", description="Rays up to which the already built grid is cheapest "
                                            "(3.4e38 with Break-even Infinite set: the grid always wins)",
