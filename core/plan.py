@@ -39,7 +39,7 @@ import numpy as np
 from .accel import Accel, build
 from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
-from .decide.measurements import _prepare, available_kinds, time_trace
+from .decide.measurements import _prepare, available_kinds, time_trace, unavailable_reason
 from .decide.rule import REUSES_SAMPLES, choose
 from .decide.work import grid_work
 from .hits import Hits
@@ -142,6 +142,9 @@ class Plan:
     grid_reused: bool = False
     calibration_source: str = ""
     notes: list[str] = field(default_factory=list)
+    #: candidates asked for but left out, {kind: one-line reason} (embreex missing, no
+    #: calibration constants); the candidates that exist are the keys of ``candidates``
+    unavailable: dict = field(default_factory=dict)
     #: what ``trace`` did: kind, build_time (0 for a reused grid), trace_time, rays
     executed: list[dict] = field(default_factory=list)
     # not serialised: the objects the plan traces with
@@ -177,6 +180,7 @@ class Plan:
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
+            "unavailable": dict(self.unavailable),
             "executed": [dict(e) for e in self.executed],
         }
 
@@ -290,6 +294,7 @@ def plan_from_timings(
     samples: int = 0,
     answered: int = 0,
     per_ray: dict | None = None,
+    unavailable: dict | None = None,
     notes=(),
 ) -> Plan:
     """The plan's arithmetic alone, from a measured grid and the calibration.
@@ -306,6 +311,7 @@ def plan_from_timings(
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
+    unavailable = dict(unavailable or {})
     n = int(triangles)
     g_lo = grid_per_ray if grid_per_ray_low is None else min(grid_per_ray_low, grid_per_ray)
     g_hi = grid_per_ray if grid_per_ray_high is None else max(grid_per_ray_high, grid_per_ray)
@@ -315,7 +321,9 @@ def plan_from_timings(
         if kind == "grid":
             continue
         if kind not in calibration.fits:
-            notes.append(f"{kind} skipped: no calibration constants for it (calibrated: {', '.join(calibration.fits) or 'none'})")
+            why = f"no calibration constants for it (calibrated: {', '.join(calibration.fits) or 'none'})"
+            unavailable[kind] = why
+            notes.append(f"{kind} skipped: {why}")
             continue
         e = calibration.estimate(kind, n)
         if per_ray and kind in per_ray:
@@ -349,7 +357,7 @@ def plan_from_timings(
         triangles=n, expected_rays=r, samples=int(samples), grid_build_time=float(grid_build_time),
         grid_per_ray=float(grid_per_ray), candidates=cands, break_even=be, break_even_low=be_low,
         break_even_high=be_high, break_even_kind=be_kind, decision=decision.upper(), certain=certain,
-        calibration_source=calibration.source, notes=notes,
+        calibration_source=calibration.source, notes=notes, unavailable=unavailable,
     )
 
 
@@ -406,6 +414,7 @@ def plan(
     if calibration is None:
         calibration = load_default()
         notes.append(f"no calibration given: using {calibration.source}")
+    unavailable = {k: why for k in kinds if (why := unavailable_reason(k))}
     kinds, skipped = available_kinds(kinds)
     notes += skipped
     k = max(1, int(samples))
@@ -438,7 +447,8 @@ def plan(
                    if (e := calibration.count_per_ray(kk, mesh.triangle_count, work)) is not None}
     p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), g,
                           grid_per_ray_low=g_lo, grid_per_ray_high=g_hi, kinds=kinds, samples=k,
-                          answered=k if idx is not None else 0, per_ray=per_ray, notes=notes)
+                          answered=k if idx is not None else 0, per_ray=per_ray, unavailable=unavailable,
+                          notes=notes)
     p.grid_sample_per_ray = t_sample
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work

@@ -172,3 +172,15 @@ def test_count_model_survives_save_and_load(tmp_path):
                       counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
     back = load(cal.save(tmp_path / "c.json"))
     assert back.counts == cal.counts
+
+
+def test_a_plan_says_which_candidates_are_missing_and_why(monkeypatch):
+    from hybrid_raycast.core import embree, plan, scenes as S
+
+    monkeypatch.setattr(embree, "embree_available", lambda: False)
+    cal = Calibration({"embree": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand")
+    p = plan(S.torus(500), 1e6, cal, samples=200)
+    assert set(p.candidates) == {"grid"}
+    assert set(p.unavailable) == {"bvh", "embree"}
+    assert "no calibration constants" in p.unavailable["bvh"] and p.unavailable["embree"]
+    assert p.to_dict()["unavailable"] == p.unavailable

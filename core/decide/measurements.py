@@ -64,14 +64,23 @@ def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None,
     return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads))
 
 
+def unavailable_reason(kind: str) -> str | None:
+    """Why ``kind`` cannot be built here (one line), or None when it can."""
+    from .. import embree
+
+    if kind == "embree" and not embree.embree_available():
+        why = getattr(embree, "embree_unavailable_reason", None)
+        return (why() if why is not None else None) or "embreex is not installed"
+    return None
+
+
 def available_kinds(kinds) -> tuple[tuple[str, ...], list[str]]:
     """The kinds that can be built here, and a note for each one that cannot."""
-    from ..embree import embree_available
-
     keep, notes = [], []
     for k in kinds:
-        if k == "embree" and not embree_available():
-            notes.append("embree skipped: embreex is not installed")
+        why = unavailable_reason(k)
+        if why:
+            notes.append(f"{k} skipped: {why}")
         else:
             keep.append(k)
     return tuple(keep), notes
