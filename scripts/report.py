@@ -205,7 +205,8 @@ def sweep_scene(s: rep.SceneResult, mesh, rays, cal, args, bvh):
                 row = {"scene": s.name, "triangles": s.triangles, "density": density, "K": k, "repeat": r,
                        "grid_build": g_build, "grid_per_ray": t_g, "R_C": r_c, "ratio": p.grid_sample_ratio,
                        "measured_ratio": t_g / p.grid_sample_per_ray if p.grid_sample_per_ray > 0 else math.nan}
-                per = {"plan": p.grid_per_ray, "sample x ratio": p.grid_sample_per_ray * cal.grid_sample_ratio(p.samples)[0],
+                row["calibration_ratio"] = cal.grid_sample_ratio(p.samples)[0]
+                per = {"plan": p.grid_per_ray, "sample x ratio": p.grid_sample_per_ray * row["calibration_ratio"],
                        "uncorrected": p.grid_sample_per_ray}
                 for name, per_ray in per.items():
                     r_est = rep.break_even(e.build_time, per_ray, e.per_ray)
@@ -1143,7 +1144,8 @@ def main(argv=None):
         "calibration": {"scenes": len(cal.scenes), "rays_per_scene": cal.rays_per_scene, "how": cal_how,
                         "model": cal.model, "default_model": calib.DEFAULT_MODEL, "ladder": ratio_info["ladder"],
                         "ratio_at_samples": ratio_info["ratios"].get(args.samples),
-                        "fits": {k: v.__dict__ for k, v in cal.fits.items()}},
+                        "fits": {k: v.__dict__ for k, v in cal.fits.items()},
+                        "counts": {k: dataclasses.asdict(v) for k, v in cal.counts.items()}},
         "kinds": list(kinds), "notes": notes,
     }
     R = {"meta": meta, "summary": summary, "models": models, "model_decision": decision, "best_model": best_model,

@@ -211,7 +211,7 @@ def test_a_measured_scene_takes_the_plans_corrected_grid_estimate_once():
     from hybrid_raycast.core import scenes as S
 
     R = report_script()
-    args = SimpleNamespace(rays=4000, seed=0, samples=512, repeats=2)
+    args = SimpleNamespace(rays=4000, seed=0, samples=512, repeats=2, plan_repeats=2)
     s, rays, _, _ = R.measure_scene("t", "procedural", S.make_scene("sphere", 2000, seed=5), hand_calibration(0.5), args, ("bvh",))
     assert s.samples == 512 and s.grid_sample_ratio == pytest.approx(0.5)
     assert s.grid_estimate_per_ray == pytest.approx(0.5 * s.grid_sample_per_ray, rel=1e-12)
@@ -328,22 +328,28 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
     cal = data["meta"]["calibration"]
     assert cal["model"] == cal["default_model"] == DEFAULT_MODEL, "the headline is the add-on as it stands"
     assert cal["ladder"] == [256, 1024] and cal["ratio_at_samples"]["median"] > 0
+    from hybrid_raycast.core.decide.cost import terms
+
+    assert set(cal["counts"]) >= {"grid", "bvh"}, "a fresh calibration holds the count models"
     for s in data["scenes"]:
-        # the estimate is the plan's corrected grid time: raw sample x the calibration's ratio, once
-        ratio = s["extra"]["grid_sample_ratio"][0]
-        assert ratio == pytest.approx(cal["ratio_at_samples"]["median"]), s["name"]
-        assert s["grid_estimate_per_ray"] == pytest.approx(s["grid_sample_per_ray"] * ratio, rel=1e-9), s["name"]
+        # the estimate is the count model on the plan's own work counts (no timing involved)
+        t = terms(s["triangles"], s["extra"]["work"])
+        g = cal["counts"]["grid"]
+        want = sum(c * t[k] for k, c in zip(g["terms"], g["coef"]))
+        assert s["grid_estimate_per_ray"] == pytest.approx(want, rel=1e-9), s["name"]
+        assert len(s["extra"]["plan_repeats"]["bvh"]) == 5
         assert s["R_est"] == (pytest.approx(s["extra"]["plan_break_even"]["bvh"]) if s["R_est"] is not None else None)
         assert s["extra"]["reuse_plan"]["workload_samples"] == s["samples"] == 1024
     assert {"paper", "affine", "median"} <= set(data["models"])
     for name, m in data["models"].items():
-        assert set(m["grid"]) == {"plan", "uncorrected"}, f"model {name}: grid estimators {set(m['grid'])}"
+        assert set(m["grid"]) == {"plan", "sample x ratio", "uncorrected"}, f"model {name}: grid estimators {set(m['grid'])}"
     # the affine (default) model under the plan's estimate reproduces the headline's error
     assert data["models"][DEFAULT_MODEL]["grid"]["plan"]["held_out"]["median_abs"] == data["summary"]["errors"]["median_abs"]
     assert data["sweep"]["rows"], "the speed-against-error sweep recorded nothing"
     for r in data["sweep"]["rows"]:
+        assert r["sample x ratio"]["per_ray"] == pytest.approx(r["uncorrected"]["per_ray"] * r["calibration_ratio"], rel=1e-9)
         assert r["plan"]["per_ray"] == pytest.approx(r["uncorrected"]["per_ray"] * r["ratio"], rel=1e-9)
-    assert set(data["sweep"]["tables"]) == {"plan", "uncorrected"}
+    assert set(data["sweep"]["tables"]) == {"plan", "sample x ratio", "uncorrected"}
     md = (out / "report.md").read_text()
     for title in ("## Headline", "## Break-even per scene", "## Speed: hybrid", "## Speed against error",
                   "## The grid's small-batch ratio", "## Refinements"):
