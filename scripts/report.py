@@ -82,7 +82,7 @@ TOTALS_PLOT = ["cow", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
 
 QUICK = dict(
     rays=20000, cal_scale="tiny", cal_rays=4000, cal_ladder=[256, 1024], sweep_rays=8000, sweep_k=[256, 1024],
-    sweep_density=[1.0, 2.0], sweep_repeats=1, samples=1024,
+    sweep_density=[1.0, 2.0], sweep_repeats=1, samples=1024, repeats=2, plan_repeats=3, cal_repeats=1,
 )
 
 
@@ -796,7 +796,7 @@ def get_calibration(args):
                 log(f"  {f:4.0%} {msg}")
 
         cal = calibrate(kinds=("bvh", "embree"), scale=args.cal_scale, rays_per_scene=args.cal_rays, progress=progress,
-                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder))
+                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_repeats(args))
         cal.save(path)
         how = f"measured for this report in {cal.duration_s:.0f} s"
     if cal.model != calib.DEFAULT_MODEL:
@@ -813,7 +813,11 @@ def calibrate_again(args, cal: Calibration):
     """A second calibration right after the first (same set and settings), not saved."""
     log(f"calibrating again, for the constants' repeatability ({args.cal_scale} set)")
     return calibrate(kinds=tuple(cal.fits), scale=args.cal_scale, rays_per_scene=args.cal_rays,
-                     model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder))
+                     model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_repeats(args))
+
+
+def cal_repeats(args) -> dict:
+    return {} if args.cal_repeats is None else {"repeats": args.cal_repeats}
 
 
 def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> dict:
@@ -1031,6 +1035,8 @@ def main(argv=None):
     ap.add_argument("--plan-repeats", type=int, default=5, help="plan() runs per scene for the estimate's repeatability")
     ap.add_argument("--calibrations", type=int, default=2,
                     help="calibrations in a row whose constants are compared (the first is the one used; default 2)")
+    ap.add_argument("--cal-repeats", type=int, default=None,
+                    help="interleaved repeats per calibration scene (default: core's, as the add-on calibrates)")
     ap.add_argument("--repeats", type=int, default=3,
                     help="interleaved builds and traces of every structure per scene for R_C, medians (default 3)")
     ap.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, help=f"plan's K sample rays (default {DEFAULT_SAMPLES})")

@@ -337,7 +337,7 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
         g = cal["counts"]["grid"]
         want = sum(c * t[k] for k, c in zip(g["terms"], g["coef"]))
         assert s["grid_estimate_per_ray"] == pytest.approx(want, rel=1e-9), s["name"]
-        assert len(s["extra"]["plan_repeats"]["bvh"]) == 5
+        assert len(s["extra"]["plan_repeats"]["bvh"]) == 3
         assert s["R_est"] == (pytest.approx(s["extra"]["plan_break_even"]["bvh"]) if s["R_est"] is not None else None)
         assert s["extra"]["reuse_plan"]["workload_samples"] == s["samples"] == 1024
     assert {"paper", "affine", "median"} <= set(data["models"])
