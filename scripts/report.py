@@ -874,12 +874,13 @@ def plan_repeatability(scenes, kind: str = "bvh") -> dict:
 #: count models compared by held-out error: (grid estimate, structure's per ray, terms)
 COUNT_VARIANTS = [
     ("sample x ratio", "affine log2n", None, None),
+    ("counts: cells", "affine log2n", ("1", "cells"), None),
     ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None),
-    ("sample x ratio", "counts: log2n, hit, length", None, ("1", "log2n", "hit_log2n", "length_log2n")),
-    ("counts: cells, refs", "counts: log2n, hit, length", ("1", "cells", "refs"), ("1", "log2n", "hit_log2n", "length_log2n")),
-    ("counts: cells, refs", "counts: log2n, hit", ("1", "cells", "refs"), ("1", "log2n", "hit_log2n")),
-    ("counts: cells, refs", "counts: cells, refs", ("1", "cells", "refs"), ("1", "cells", "refs")),
+    ("sample x ratio", "counts: log2n", None, ("1", "log2n")),
+    ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n")),
     ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n")),
+    ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs")),
+    ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs")),
 ]
 
 
