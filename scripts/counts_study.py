@@ -22,7 +22,8 @@ core_package()
 from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hybrid_raycast.core.decide import Measurement, SceneRecord  # noqa: E402
+from hybrid_raycast.core.decide import Calibration, Measurement, SceneRecord, fit  # noqa: E402
+from hybrid_raycast.core.decide.cost import fit_counts  # noqa: E402
 from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import available_kinds, measure_break_even, time_trace  # noqa: E402
 from hybrid_raycast.core.decide.work import grid_work  # noqa: E402
@@ -70,6 +71,132 @@ def analyse(path, kind="bvh"):
         print(f"{r[0]:16s} {r[1]:20s} {r[2]:7.1f} {r[3]:7.1f} {r[4]:6.1f} {r[5]:6.1f} {r[6]}")
 
 
+def _calibration(recs, model="affine"):
+    """A Calibration fitted on ``recs`` as ``calibrate()`` fits it (affine build and per-ray
+    constants, the count models of ``cost.COUNT_TERMS``)."""
+    kinds = tuple(k for k in ("bvh", "embree") if all(k in r.kinds for r in recs))
+    return Calibration(fit(recs, kinds, model=model), scenes=list(recs), model=model,
+                       counts=fit_counts(recs, ("grid",) + kinds), source="counts study")
+
+
+def evaluate(path, k_samples=16384, plans=5):
+    """The issue-14 goals from the study's measurements: models fitted on the calibration
+    scenes, judged on the evaluated meshes (break-even errors, picks, hybrid / oracle);
+    R_C's own spread over its interleaved repeats; constants fitted on each repeat alone
+    (three calibrations from independent timings); five plan() runs per evaluated mesh."""
+    rows = json.loads(Path(path).read_text())
+    recs = records(rows)
+    cal_recs = [r for g, r in recs if g == "calibration"]
+    cal = _calibration(cal_recs)
+    print(cal.describe())
+    kinds = tuple(cal.fits)
+    results = []
+    for row, (g, rec) in zip(rows, recs):
+        if g == "calibration":
+            continue
+        n = rec.triangles
+        t_g = cal.count_per_ray("grid", n, rec.work)[0]
+        est = {k: rep.Cost(cal.estimate(k, n).build, cal.count_per_ray(k, n, rec.work)[0]) for k in kinds}
+        meas = {k: rep.Cost(rec.kinds[k].build_time, rec.kinds[k].per_ray) for k in kinds}
+        cost_e = float(np.median(row["sample"])) * k_samples + row["work_time"]
+        s = rep.SceneResult(rec.name, n, rec.rays, rep.Cost(rec.kinds["grid"].build_time, rec.kinds["grid"].per_ray),
+                            meas, est, t_g, cost_e, k_samples, g,
+                            reuse_estimate_time=row["work_time"])
+        s.extra["R_C_repeats"] = row["R_C_repeats"]
+        results.append(s)
+    mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)]))  # noqa: E731
+    for k in kinds:
+        errs = [rep.relative_error(rep.estimated_break_even(s, k), rep.true_break_even(s, k)) for s in results]
+        spread = []
+        for s in results:
+            v = [x for x in s.extra["R_C_repeats"].get(k, []) if x is not None and math.isfinite(x)]
+            if len(v) >= 2:
+                spread.append(100 * (max(v) - min(v)) / float(np.median(v)))
+        e = rep.error_summary(errs)
+        print(f"vs {k}: median |error| {e['median_abs']:.1f}% over {e['defined']} of {e['scenes']} scenes "
+              f"({rep.never_agreement([(rep.estimated_break_even(s, k), rep.true_break_even(s, k)) for s in results])}); "
+              f"R_C's own spread over its repeats: median {np.median(spread):.1f}%")
+        for s, x in zip(results, errs):
+            v = s.extra["R_C_repeats"].get(k, [])
+            print(f"   {s.name:20s} R_C {rep.true_break_even(s, k):12,.0f} R_est {rep.estimated_break_even(s, k):12,.0f} "
+                  f"error {x:+7.1f}%  R_C repeats {', '.join(f'{y:,.0f}' for y in v)}")
+    pk = rep.pick_accuracy(results)
+    sp = rep.speedup_summary(results)
+    calls = []
+    for s in results:
+        t = rep.strategy_totals(s, rep.RAY_COUNTS, ("bvh",), "bvh", batch=1000)
+        calls += list(t["online"] / t["oracle"])
+    print(f"correct picks (grid vs numpy BVH, > 10% apart): {pk['percent']:.1f}% ({pk['correct']}/{pk['considered']})")
+    print(f"hybrid / oracle, median (90th pct): (i) separate samples {sp['hybrid_over_oracle']['median']:.3f} "
+          f"({sp['hybrid_over_oracle']['p90']:.3f}); (ii) samples from the workload {sp['hybrid_reuse_over_oracle']['median']:.3f} "
+          f"({sp['hybrid_reuse_over_oracle']['p90']:.3f}); online batches of 32k {sp['online_over_oracle']['median']:.3f}; "
+          f"calls of 1,000 rays with ski rental across calls {np.median(calls):.3f} (max {max(calls):.2f})")
+    # constants from each repeat alone: what two calibrations in a row would give
+    fits = []
+    for r in range(3):
+        rr = []
+        for row, (g, rec) in zip(rows, recs):
+            if g != "calibration":
+                continue
+            kk = {k: Measurement(v[r][0], v[r][1] * rec.rays, rec.rays) for k, v in row["runs"].items() if k in rec.kinds}
+            rr.append(SceneRecord(rec.name, rec.triangles, rec.rays, kk, rec.grid_samples, rec.work))
+        fits.append(_calibration(rr))
+    print("calibrations fitted on each repeat's timings alone (1 vs 2, 1 vs 3, 2 vs 3): largest difference of the "
+          "per-ray times and builds they predict on the evaluated meshes, and of their break-evens")
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        ca, cb = fits[a], fits[b]
+        worst, bes = {}, []
+        for g, rec in recs:
+            if g == "calibration":
+                continue
+            n = rec.triangles
+            for k in ("grid",) + kinds:
+                pa, pb = ca.count_per_ray(k, n, rec.work)[0], cb.count_per_ray(k, n, rec.work)[0]
+                worst[k] = max(worst.get(k, 0.0), 200 * abs(pa - pb) / (pa + pb))
+            for k in kinds:
+                pa, pb = ca.estimate(k, n).build, cb.estimate(k, n).build
+                worst[k + " build"] = max(worst.get(k + " build", 0.0), 200 * abs(pa - pb) / (pa + pb))
+            ra = rep.break_even(ca.estimate("bvh", n).build, ca.count_per_ray("grid", n, rec.work)[0],
+                                ca.count_per_ray("bvh", n, rec.work)[0])
+            rb = rep.break_even(cb.estimate("bvh", n).build, cb.count_per_ray("grid", n, rec.work)[0],
+                                cb.count_per_ray("bvh", n, rec.work)[0])
+            if math.isfinite(ra) and math.isfinite(rb):
+                bes.append(max(ra, rb) / min(ra, rb))
+        print(f"   {a + 1} vs {b + 1}: " + ", ".join(f"{k} {v:.1f}%" for k, v in worst.items())
+              + f"; break-even max/min median {np.median(bes):.3f} (max {max(bes):.2f})")
+    if plans:
+        from hybrid_raycast.core import plan as make_plan
+
+        ratios = []
+        for name, group, make in scene_list():
+            if group == "calibration":
+                continue
+            mesh = make()
+            be = [make_plan(mesh, 1e6, cal, kinds=("grid",) + kinds, seed=s).candidates["bvh"].break_even for s in range(plans)]
+            fin = [x for x in be if math.isfinite(x)]
+            ratios.append(max(fin) / min(fin) if len(fin) == len(be) else (1.0 if not fin else math.inf))
+            print(f"   {name:20s} {plans} plan() runs: break-evens {', '.join(f'{x:,.0f}' for x in be)}", flush=True)
+        print(f"{plans} plan() runs per evaluated mesh (one calibration, other sample rays each run): max/min median "
+              f"{np.median(ratios):.3f}, max {max(ratios):.3f}, {sum(r <= 1.2 for r in ratios)}/{len(ratios)} within 1.2")
+
+
+def scene_list(scale="default", subdivide="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3"):
+    todo = [(n, "calibration", f) for n, f in scene_lib.calibration_set(scale)]
+    folder = ROOT.parent / "shared" / "scenes"
+    for p in sorted(folder.glob("*.obj")):
+        todo.append((p.stem, "real", (lambda p=p: load_obj(p))))
+    for spec in filter(None, subdivide.split(",")):
+        stem, lv = spec.split(":")
+
+        def make(stem=stem, lv=int(lv)):
+            m = load_obj(folder / f"{stem}.obj")
+            for _ in range(lv):
+                m = scene_lib.subdivide(m)
+            return m
+        todo.append((f"{stem}-x{4 ** int(lv)}", "subdivided", make))
+    return todo
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=str(ROOT / "out" / "counts.json"))
@@ -79,24 +206,16 @@ def main(argv=None):
     ap.add_argument("--scale", default="default")
     ap.add_argument("--analyse", default="", help="print the held-out errors of the count models on a saved JSON")
     ap.add_argument("--kind", default="bvh")
+    ap.add_argument("--evaluate", default="", help="print the issue-14 goals from a saved JSON (no timing)")
+    ap.add_argument("--plans", type=int, default=5)
     ap.add_argument("--subdivide", default="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3")
     args = ap.parse_args(argv)
     if args.analyse:
         return analyse(args.analyse, args.kind)
+    if args.evaluate:
+        return evaluate(args.evaluate, plans=args.plans)
     kinds, _ = available_kinds(("grid", "bvh", "embree"))
-    todo = [(n, "calibration", f) for n, f in scene_lib.calibration_set(args.scale)]
-    folder = ROOT.parent / "shared" / "scenes"
-    for p in sorted(folder.glob("*.obj")):
-        todo.append((p.stem, "real", (lambda p=p: load_obj(p))))
-    for spec in filter(None, args.subdivide.split(",")):
-        stem, lv = spec.split(":")
-
-        def make(stem=stem, lv=int(lv)):
-            m = load_obj(folder / f"{stem}.obj")
-            for _ in range(lv):
-                m = scene_lib.subdivide(m)
-            return m
-        todo.append((f"{stem}-x{4 ** int(lv)}", "subdivided", make))
+    todo = scene_list(args.scale, args.subdivide)
     rows = []
     print(f"load {os.getloadavg()}", flush=True)
     for name, group, make in todo:

@@ -82,7 +82,7 @@ TOTALS_PLOT = ["cow", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
 
 QUICK = dict(
     rays=20000, cal_scale="tiny", cal_rays=4000, cal_ladder=[256, 1024], sweep_rays=8000, sweep_k=[256, 1024],
-    sweep_density=[1.0, 2.0], sweep_repeats=1, samples=1024, repeats=2, plan_repeats=3, cal_repeats=1,
+    sweep_density=[1.0, 2.0], sweep_repeats=1, samples=1024, repeats=2, plan_repeats=2, cal_repeats=1,
 )
 
 

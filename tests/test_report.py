@@ -314,7 +314,7 @@ def test_reestimate_changes_only_the_estimates():
 def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
     out = tmp_path / "report"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "report.py"), "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"report.py --quick failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
     data = json.loads((out / "report.json").read_text())
     assert data["meta"]["quick"] is True and len(data["scenes"]) == 4
@@ -337,7 +337,7 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
         g = cal["counts"]["grid"]
         want = sum(c * t[k] for k, c in zip(g["terms"], g["coef"]))
         assert s["grid_estimate_per_ray"] == pytest.approx(want, rel=1e-9), s["name"]
-        assert len(s["extra"]["plan_repeats"]["bvh"]) == 3
+        assert len(s["extra"]["plan_repeats"]["bvh"]) == 2
         assert s["R_est"] == (pytest.approx(s["extra"]["plan_break_even"]["bvh"]) if s["R_est"] is not None else None)
         assert s["extra"]["reuse_plan"]["workload_samples"] == s["samples"] == 1024
     assert {"paper", "affine", "median"} <= set(data["models"])
