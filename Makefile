@@ -3,6 +3,7 @@
 
 PYTHON ?= python3.11
 VENV   := .venv
+O3D_VENV := .venv-open3d
 PY     := $(VENV)/bin/python
 BPYDIR  = $(shell $(PY) -c "import importlib.util as u, os; print(os.path.dirname(u.find_spec('bpy').origin))" 2>/dev/null)
 BLENDER_EXT = $(BPYDIR)/5.0/scripts/addons_core/bl_pkg/cli/blender_ext.py
@@ -11,7 +12,7 @@ WHEELS := $(shell sed -n 's|^ *"\./\(wheels/[^"]*\.whl\)",*|\1|p' blender_manife
 VERSION := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 ZIP    := dist/hybrid_raycast-$(VERSION).zip
 
-.PHONY: demo test test-fast real-blender venv wheels validate extension bench-extract bench-trace report clean
+.PHONY: demo test test-fast real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-distributed report clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -55,8 +56,25 @@ $(ZIP): $(VENV)/.stamp wheels $(shell git ls-files '*.py' '*.toml' 2>/dev/null)
 bench-extract: $(VENV)/.stamp
 	$(PY) scripts/bench_extract.py
 
-bench-trace: $(VENV)/.stamp
-	$(PY) scripts/bench_trace.py
+## The engine table: raw embreex, core's Embree (defaults and 1 thread), numpy BVH and grid, Blender's
+## BVHTree loop and Open3D on 3 icospheres and a 1M Suzanne, 1M random and camera rays (a few minutes;
+## run it as `flock /tmp/hrc-bench.lock make bench-trace`).  BENCH_ARGS=--scenes icospheres, --repeats N ...
+## The older per-size table against all of Blender's peers: .venv/bin/python scripts/bench_trace.py --help
+bench-trace: $(VENV)/.stamp $(O3D_VENV)/.stamp
+	$(PY) scripts/bench_trace.py --engines $(BENCH_ARGS)
+
+## Open3D 0.20 for the benchmark only, in its own venv: it needs numpy 2, which bpy 5.0.1 excludes.
+## Its import needs Debian's libusb-1.0-0 (apt-get install -y libusb-1.0-0).
+open3d-venv: $(O3D_VENV)/.stamp
+$(O3D_VENV)/.stamp: requirements-open3d.txt
+	test -x $(O3D_VENV)/bin/python || $(PYTHON) -m venv $(O3D_VENV)
+	$(O3D_VENV)/bin/python -m pip install -q --upgrade pip
+	$(O3D_VENV)/bin/python -m pip install -q -r requirements-open3d.txt
+	touch $@
+
+## core.distributed: 1 vs 2 Dask workers (LocalCluster) against a local trace, 10M rays, ~1.1M triangles.
+bench-distributed: $(VENV)/.stamp
+	$(PY) scripts/bench_distributed.py $(BENCH_ARGS)
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes
 ## (about 8 minutes; REPORT_ARGS=--quick for a 5-second smoke run).

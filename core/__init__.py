@@ -1,20 +1,24 @@
 """Pure-numpy core of Hybrid Ray Cast: meshes, the shared kernel and the structures.
 
 Never imports bpy or mathutils, so everything here runs and is tested without Blender.
-embreex (optional) is imported only when an 'embree' structure is built.
+embreex (optional) is imported only when an 'embree' structure is built, dask only when
+a ``core.distributed`` function is called.
 """
 
-from .accel import KINDS, Accel, build
+from .accel import Accel
+from .factory import KINDS, build
 from .embree import embree_available
 from .hits import Hits
 from .intersect import prepare_rays
 from .mesh import TriangleMesh
 from .objio import load_obj
+from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, uniform_rays
 from . import decide
 from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
-from .plan import Plan, plan, trace_online, trace_planned
+from .plan import Plan, plan, trace_online
 from .scenes import calibration_set
+from . import distributed  # noqa: E402  (core.distributed; imports dask only when called)
 
 __all__ = [
     "KINDS",
@@ -31,11 +35,16 @@ __all__ = [
     "measure_break_even",
     "plan",
     "trace_online",
-    "trace_planned",
     "camera_rays",
     "embree_available",
     "hemisphere_rays",
     "load_obj",
+    "load_mesh",
+    "read_scene",
+    "save_mesh",
+    "SceneFile",
+    "SceneFileError",
+    "distributed",
     "prepare_rays",
     "uniform_rays",
 ]

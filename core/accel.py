@@ -1,4 +1,4 @@
-"""The one interface every structure implements, and ``build(mesh, kind)``.
+"""The one interface every structure implements (``build(mesh, kind)`` is in factory.py).
 
 Every structure answers the two questions of pbrt's accelerators: the nearest hit
 (``trace``) and whether anything is hit at all (``occluded``).  This base class owns
@@ -19,9 +19,6 @@ from .hits import Hits
 from .intersect import Rays, prepare_rays
 from .mesh import TriangleMesh
 
-KINDS = ("grid", "bvh", "embree", "brute")
-
-
 def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))
 
@@ -32,6 +29,8 @@ class Accel:
     kind = "?"
     #: rays per chunk: bounds the per-chunk working set
     chunk_size = 1 << 16
+    #: whether ``_trace_rays`` needs the Woop shear of core/intersect.py (Embree does not)
+    uses_shear = True
 
     def __init__(self, mesh: TriangleMesh, *, threads: int | None = None, chunk_size: int | None = None):
         if not isinstance(mesh, TriangleMesh):
@@ -57,8 +56,9 @@ class Accel:
 
     # -- the public interface --------------------------------------------------------
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
-        """Nearest hit per ray with tmin < t <= tmax (see DESIGN.md's hit convention)."""
-        rays = prepare_rays(origins, directions, tmin, tmax)
+        """Nearest hit per ray with tmin < t <= tmax; an exact tie in t goes to the lowest
+        triangle index; both faces are hit (the hit convention, ../shared/DESIGN.md)."""
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return Hits.empty(m)
@@ -67,7 +67,7 @@ class Accel:
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some triangle is hit with tmin < t <= tmax."""
-        rays = prepare_rays(origins, directions, tmin, tmax)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return np.zeros(m, bool)
@@ -88,22 +88,3 @@ class Accel:
     def __repr__(self):
         return f"<{type(self).__name__} {self.mesh.triangle_count} triangles, built in {self.build_time * 1e3:.1f} ms>"
 
-
-def build(mesh: TriangleMesh, kind: str = "bvh", **config) -> Accel:
-    """Build the structure ``kind`` ('grid', 'bvh', 'embree' or 'brute') over ``mesh``.
-
-    ``config`` goes to the structure (each documents its knobs and their defaults),
-    plus ``threads`` and ``chunk_size`` which every structure takes.
-    """
-    kind = str(kind).lower()
-    if kind == "brute":
-        from .brute import BruteForce as cls
-    elif kind == "grid":
-        from .grid import UniformGrid as cls
-    elif kind == "bvh":
-        from .bvh import BVH as cls
-    elif kind == "embree":
-        from .embree import EmbreeAccel as cls
-    else:
-        raise ValueError(f"unknown structure kind {kind!r}; expected one of {', '.join(KINDS)}")
-    return cls(mesh, **config)

@@ -7,21 +7,37 @@ this wrapper does about it:
 - ``rtcore_scene.EmbreeScene(robust=True)`` sets Embree's RTC_SCENE_FLAG_ROBUST
   (watertight traversal and intersection, at some speed).
 - ``scene.run(origins_f32, dirs_f32, dists=None, query='INTERSECT', output=None)``
-  traces one ray at a time.  ``dists`` is the per-ray tfar (default 1e37; a passed
+  traces one ray at a time (``rtcIntersect1``), but its loop over the rays runs inside
+  ``with nogil`` (embreex ``embreex/rtcore_scene.pyx``, ``EmbreeScene.run``; checked in
+  embreex 4.4.0.post1's source), so chunks on a thread pool trace in parallel.  Every
+  per-call state (the ``RTCRayHit``, the output arrays) is local to ``run``; the one
+  shared flag is ``is_committed``, set by the first call, which ``_build`` makes before
+  any concurrent use.  ``dists`` is the per-ray tfar (default 1e37; a passed
   array is overwritten with the hit distances, so we pass a copy).  With ``output=1``
   it returns a dict of float32 ``u``, ``v``, ``tfar``, ``Ng`` (M, 3) and int32
   ``primID``, ``geomID`` (-1 on a miss).  ``query='OCCLUDED'`` without ``output``
   returns int32, -1 where nothing is hit (with ``output`` the dict is garbage).
 - There is no tnear: embreex always traces from 0 and Embree counts a hit at
-  exactly t = tnear, while our convention is tmin < t.  We emulate tmin by moving the
+  exactly t = tnear, while our convention is tmin < t.  A ray with tmin <= 0 is traced
+  as given over [0, tmax] (the fast path: no copy, no float64); only when such a ray hits
+  at exactly t = 0 is it traced again as below.  For tmin > 0 we move the
   origin to ``o + tmin * d`` (in float64, rounded to float32, so the ray the structure
-  sees differs from the caller's by up to an ulp of the origin) and tracing over
+  sees differs from the caller's by up to an ulp of the origin) and trace over
   (0, tmax - tmin]; a hit at exactly the start (t' = 0) is traced again from a start a
   few ulps further on (at most ``_RESTARTS`` times; after that the ray reports a miss).
   Both Embree's tfar and ours are inclusive.  A negative tmin is treated as 0: Embree
   cannot report hits behind the origin.
 - The scene commits (builds its BVH) on the first ``run``; ``_build`` runs one dummy
   ray so that ``build_time`` includes Embree's build, as the cost model needs.
+- What embreex does not expose (``embreex/rtcore_scene.pxd``, ``rtcore.pyx``): the
+  scene's build quality (``rtcSetSceneBuildQuality``; Embree's default, MEDIUM, is
+  used), any device config (``rtcNewDevice(NULL)``: Embree's own build threads are all
+  hardware threads), scene flags other than ROBUST, shared (zero-copy) buffers and
+  packet or stream queries.  Its ``mesh_construction.TriangleMesh`` copies the arrays
+  into Embree's buffers element by element through untyped (Python-level) indexing
+  (``_build_from_indices`` / ``_build_from_flat``), which costs more than Embree's own
+  BVH build (BENCHMARKS.md); the indexed form (vertices + triangle indices: 3V + 6T
+  reads) needs fewer of them than the flat (T, 3, 3) form (9T), so it is the one used.
 
 Triangles that are degenerate (zero area in float64, ``TriangleMesh.valid``) are not
 given to Embree, and Embree's primID is mapped back to the mesh's triangle index.
@@ -64,28 +80,34 @@ def _import_embreex():
 class EmbreeAccel(Accel):
     """Embree 4 through embreex.
 
-    Config: ``robust`` (default True): RTC_SCENE_FLAG_ROBUST.  ``threads`` defaults to 1
-    here: embreex traces one ray at a time under the GIL, so threads only add overhead.
+    Config: ``robust`` (default True): RTC_SCENE_FLAG_ROBUST.  ``threads`` (default: the
+    machine's cores, ``accel.default_threads()``): chunks of ``chunk_size`` rays traced
+    concurrently, each call releasing the GIL inside embreex's ray loop.
     """
 
     kind = "embree"
+    uses_shear = False
 
-    def __init__(self, mesh, *, robust: bool = True, threads: int | None = 1, **kw):
+    def __init__(self, mesh, *, robust: bool = True, threads: int | None = None, **kw):
         self.robust = bool(robust)
         super().__init__(mesh, threads=threads, **kw)
 
     def _build(self):
         rtcore_scene, mesh_construction = _import_embreex()
-        self.prim_to_triangle = np.flatnonzero(self.mesh.valid).astype(np.int32)
+        valid = self.mesh.valid
+        self.prim_to_triangle = np.flatnonzero(valid).astype(np.int32)
+        # None when every triangle is valid: Embree's primID is the triangle index
+        self._remap = None if self.prim_to_triangle.size == valid.size else self.prim_to_triangle
         self.scene = None
         if self.prim_to_triangle.size == 0:
             return
         self.scene = rtcore_scene.EmbreeScene(robust=self.robust)
-        tri_vertices = np.ascontiguousarray(self.mesh.tri_vertices[self.prim_to_triangle], dtype=F32)
-        # keep a reference: embreex shares the buffer with Embree
-        self._tri_vertices = tri_vertices
-        self._geometry = mesh_construction.TriangleMesh(self.scene, tri_vertices)
-        # force the commit (Embree's BVH build) now, so build_time measures it
+        triangles = self.mesh.triangles if self._remap is None else self.mesh.triangles[self._remap]
+        self._geometry = mesh_construction.TriangleMesh(
+            self.scene, np.ascontiguousarray(self.mesh.vertices, F32), np.ascontiguousarray(triangles, np.int32)
+        )
+        # force the commit (Embree's BVH build) now, so build_time measures it and no two
+        # threads' first run() commit at once
         one = np.zeros((1, 3), F32)
         self.scene.run(one, one + F32(1.0), dists=np.zeros(1, F32))
 
@@ -93,18 +115,16 @@ class EmbreeAccel(Accel):
         """One embreex call; origins/directions (P, 3) float32, tfar (P,) float32."""
         o = np.ascontiguousarray(origins, dtype=F32)
         d = np.ascontiguousarray(directions, dtype=F32)
-        dists = np.ascontiguousarray(tfar, dtype=F32).copy()  # embreex writes into it
+        dists = np.array(tfar, dtype=F32)  # a copy: embreex writes the hit distances into it
         if query == "OCCLUDED":
             return self.scene.run(o, d, dists=dists, query="OCCLUDED")
         return self.scene.run(o, d, dists=dists, output=1)
 
-    def _start(self, rays: Rays):
-        """Each ray's start parameter s (float64): tmin, or 0 where tmin is negative."""
-        s = rays.tmin.astype(np.float64)
-        s = np.where(s > 0, s, 0.0)  # a negative tmin only widens the range: Embree starts at 0
-        return s
+    def _triangles(self, prim):
+        return prim if self._remap is None else self._remap[prim]
 
     def _moved(self, rays: Rays, idx, s):
+        """Origins moved to o + s d (float64, rounded to float32), directions, tfar = tmax - s."""
         o = rays.origins[idx].astype(np.float64) + s[:, None] * rays.directions[idx].astype(np.float64)
         with np.errstate(over="ignore", invalid="ignore"):
             tfar = rays.tmax[idx].astype(np.float64) - s
@@ -117,33 +137,73 @@ class EmbreeAccel(Accel):
         step = np.maximum(o / d, 1e-30) * 2.0 ** -21
         return np.maximum(s * (1 + 2.0 ** -21), s + step)
 
+    def _trace_from_origin(self, rays: Rays, idx, out: Hits):
+        """Rays ``idx`` (None: all) as given over [0, tmax] into ``out``; returns the
+        indices of those whose nearest hit is at exactly t = 0 (to be traced again)."""
+        o, d, tmax = rays.origins, rays.directions, rays.tmax
+        if idx is not None:
+            o, d, tmax = o[idx], d[idx], tmax[idx]
+        live = tmax >= 0
+        if not live.all():
+            idx = (np.arange(len(rays)) if idx is None else idx)[live]
+            o, d, tmax = o[live], d[live], tmax[live]
+        r = self._run(o, d, tmax, "INTERSECT")
+        prim, tfar = r["primID"], r["tfar"]
+        hit = prim >= 0
+        good = hit & (tfar > 0)
+        if idx is None:  # every ray: whole arrays, no scatter
+            out.t[:] = np.where(good, tfar, np.float32(np.inf))
+            out.triangle[:] = np.where(good, self._triangles(prim), -1)
+            out.u[:] = np.where(good, r["u"], np.float32(0))
+            out.v[:] = np.where(good, r["v"], np.float32(0))
+            return np.flatnonzero(hit & ~good)
+        g = idx[good]
+        out.t[g] = tfar[good]
+        out.triangle[g] = self._triangles(prim[good])
+        out.u[g] = r["u"][good]
+        out.v[g] = r["v"][good]
+        return idx[hit & ~good]
+
     def _trace_rays(self, rays: Rays) -> Hits:
         m = len(rays)
         out = Hits.empty(m)
         if self.scene is None:
             return out
-        s = self._start(rays)
-        todo = np.arange(m)
-        for _ in range(_RESTARTS + 1):
-            o, d, tfar = self._moved(rays, todo, s[todo])
+        fresh = rays.tmin <= 0  # a negative tmin only widens the range: Embree starts at 0
+        if fresh.all():
+            at_zero = self._trace_from_origin(rays, None, out)
+            todo = np.empty(0, np.intp)
+        else:
+            at_zero = self._trace_from_origin(rays, np.flatnonzero(fresh), out)
+            todo = np.flatnonzero(~fresh)
+        s = rays.tmin[todo].astype(np.float64)
+        # the rays that hit at exactly their origin join the moved rays after their first
+        # pass, so that every ray gets at most _RESTARTS traces after its first
+        late, s_late = at_zero, self._restart_param(rays, at_zero, np.zeros(at_zero.size))
+        for it in range(_RESTARTS + 1):
+            if it == 1 and late.size:
+                todo, s = np.concatenate([todo, late]), np.concatenate([s, s_late])
+            if todo.size == 0:
+                if it == 0 and late.size:
+                    continue
+                break
+            o, d, tfar = self._moved(rays, todo, s)
             live = tfar >= 0
+            idx, s = todo[live], s[live]
             r = self._run(o[live], d[live], tfar[live], "INTERSECT")
-            idx = todo[live]
             prim = r["primID"]
             hit = prim >= 0
             at_start = hit & (r["tfar"] <= 0)
             # rays that hit exactly at their start: the convention excludes t = tmin
             good = hit & ~at_start
             g = idx[good]
-            t = (s[g] + r["tfar"][good].astype(np.float64)).astype(F32)
+            t = (s[good] + r["tfar"][good].astype(np.float64)).astype(F32)
             out.t[g] = np.minimum(t, rays.tmax[g])  # rounding of s + t' must not pass tmax
-            out.triangle[g] = self.prim_to_triangle[prim[good]]
+            out.triangle[g] = self._triangles(prim[good])
             out.u[g] = r["u"][good]
             out.v[g] = r["v"][good]
             todo = idx[at_start]
-            if todo.size == 0:
-                break
-            s[todo] = self._restart_param(rays, todo, s[todo])
+            s = self._restart_param(rays, todo, s[at_start])
         return out
 
     def _occluded_rays(self, rays: Rays) -> np.ndarray:
@@ -151,10 +211,20 @@ class EmbreeAccel(Accel):
         hit = np.zeros(m, bool)
         if self.scene is None:
             return hit
-        s = self._start(rays)
-        o, d, tfar = self._moved(rays, slice(None), s)
-        live = np.flatnonzero(tfar >= 0)
-        occ = live[self._run(o[live], d[live], tfar[live], "OCCLUDED") != -1]
+        fresh = rays.tmin <= 0
+        s = np.zeros(m)
+        o, d, tfar = rays.origins, rays.directions, rays.tmax
+        if not fresh.all():  # only the rays with tmin > 0 are moved
+            moved = np.flatnonzero(~fresh)
+            s[moved] = rays.tmin[moved]
+            o, tfar = o.copy(), tfar.copy()
+            o[moved], _, tfar[moved] = self._moved(rays, moved, s[moved])
+        live = tfar >= 0
+        if live.all():
+            occ = np.flatnonzero(self._run(o, d, tfar, "OCCLUDED") != -1)
+        else:
+            live = np.flatnonzero(live)
+            occ = live[self._run(o[live], d[live], tfar[live], "OCCLUDED") != -1]
         # Embree also counts a hit at exactly the start (t = tmin, which we exclude):
         # ask again from a few ulps further on, and settle the rest with a nearest-hit trace
         s2 = self._restart_param(rays, occ, s[occ])

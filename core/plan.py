@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .accel import Accel, build
+from .accel import Accel
+from .factory import build
 from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
 from .decide.measurements import _prepare, available_kinds, time_trace, unavailable_reason
@@ -53,7 +54,6 @@ from .mesh import TriangleMesh
 DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
-DECISIONS = ("GRID", "BVH", "EMBREE")
 
 
 def _check_expected(expected_rays) -> float:
@@ -274,11 +274,6 @@ def _pick(x, sel, m):
     """A per-ray bound's entries at ``sel``; a scalar as it is."""
     x = np.asarray(x)
     return x[sel] if x.ndim == 1 and len(x) == m else x
-
-
-def trace_planned(plan: Plan, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
-    """``plan.trace(...)``: the workload through the structure the plan chose."""
-    return plan.trace(origins, directions, tmin, tmax)
 
 
 def plan_from_timings(

@@ -12,13 +12,16 @@ Commands
                analysis, so the JSON holds both; ``--output`` gets the pass PNGs
     calibrate  measure this machine's constants (``--scale``) and save them
     report     the last analysis stored in the .blend (re-analyzed when missing or stale)
+    export     one scene file per frame (``--frames 1-250 --output DIR``: DIR/frame_0001.npz, ...)
+               for tracing without Blender (``core.load_mesh``, ``core.distributed``);
+               a progress line per frame on stderr
 
 Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-`` for
 stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
 given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``,
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
 NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
-``--save [PATH]``.
+``--save [PATH]``, ``--frames 1-250`` (export).
 
 ``--json -`` puts the JSON, and nothing else, on stdout: while the command runs, file
 descriptor 1 points at stderr, so every message (ours, Blender's own C-level prints such
@@ -67,8 +70,9 @@ from .jobs import BadInput, HRCError, Job, Unwritable, run_sync
 from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
-COMMANDS = ("analyze", "trace", "calibrate", "report")
-EXIT_OK, EXIT_INTERNAL, EXIT_BAD_ARGS, EXIT_NO_GEOMETRY, EXIT_UNWRITABLE, EXIT_INVALID_GEOMETRY, EXIT_NOTHING_TO_TRACE = range(7)
+COMMANDS = ("analyze", "trace", "calibrate", "report", "export")
+#: exit codes of the CLI itself; each failure's own code is its HRCError's ``code`` (operators/jobs.py)
+EXIT_OK, EXIT_INTERNAL = 0, 1
 PLOT_PNG = "hybrid_raycast_plot.png"
 JSON_NAME = "hybrid_raycast_{command}.json"
 
@@ -127,6 +131,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="quick", help="calibrate: how much to measure")
     p.add_argument("--save", nargs="?", const="", metavar="PATH",
                    help="save the .blend afterwards (the AO bake, the results): to PATH, or the loaded file")
+    p.add_argument("--frames", help="export: N, A-B or a list of them, e.g. 1-250 (default: the scene's frame range)")
     return p
 
 
@@ -233,11 +238,11 @@ def main(argv, stdout=None, stderr=None, *, blender_argv=None, keep_stdout_on_st
             calibrate_mod.CALIBRATION_PATH = args.calibration
         _check_opened_file(blender_argv)
         if args.json != "-":
-            return _run(args, stdout, stdout.write)
+            return _run(args, stdout, stdout.write, stderr)
         if not real:
-            return _run(args, stderr, stdout.write)
+            return _run(args, stderr, stdout.write, stderr)
         with _stdout_on_stderr(keep_stdout_on_stderr) as write_json:
-            return _run(args, sys.stdout, write_json)
+            return _run(args, sys.stdout, write_json, stderr)
     except HRCError as e:
         print(f"{' '.join(filter(None, (COMMAND, command)))}: error: {e}", file=stderr, flush=True)
         return e.code
@@ -339,6 +344,24 @@ def _write_plot(props, out_dir: Path) -> str:
         raise Unwritable(f"unwritable path: {out_dir / PLOT_PNG}: {e.strerror or e}") from None
 
 
+def _export(args, out_dir, stdout, stderr) -> dict:
+    from .export import export_frames, parse_frames
+
+    if out_dir is None:
+        raise BadInput("bad arguments: export needs --output DIR (the folder for the scene files)")
+    scene = _scene(args)
+    frames = parse_frames(args.frames) if args.frames else list(range(scene.frame_start, scene.frame_end + 1))
+
+    def progress(done, total, rec):
+        print(f"{COMMAND} export: frame {rec['frame']} ({done}/{total}): {rec['triangles']:,} triangles -> {rec['path']}",
+              file=stderr, flush=True)
+
+    files = export_frames(scene, frames, out_dir, view_layer=_view_layer(scene), selected_only=args.selected_only,
+                          progress=progress)
+    print(f"{COMMAND} export: wrote {len(files)} scene files to {out_dir}", file=stdout, flush=True)
+    return {"command": "export", "scene": scene.name, "output": str(out_dir), "files": files}
+
+
 def _save_target(args) -> Path | None:
     """Where ``--save`` writes (checked before any work); None without ``--save``."""
     if args.save is None:
@@ -382,7 +405,7 @@ def _passes_json() -> dict:
     }
 
 
-def _run(args, stdout, write_json) -> int:
+def _run(args, stdout, write_json, stderr=None) -> int:
     out_dir = _writable_dir(Path(args.output), "--output") if args.output else None
     json_path = _json_target(args)
     if args.command == "calibrate":
@@ -394,6 +417,10 @@ def _run(args, stdout, write_json) -> int:
         _say(stdout, apply_calibration(None, result))
         cal = result["calibration"]
         doc = {"command": "calibrate", "path": str(result["path"]), "calibration": cal.to_dict()}
+    elif args.command == "export":
+        if args.save is not None:
+            raise BadInput("bad arguments: --save: export changes no scene")
+        doc = _export(args, out_dir, stdout, stderr or sys.stderr)
     else:
         scene = _scene(args)
         save_path = _save_target(args)

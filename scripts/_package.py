@@ -30,3 +30,26 @@ def load_addon(name: str = "hybrid_raycast"):
         pkg.__spec__ = spec
         spec.loader.exec_module(pkg)
     return pkg
+
+
+def importable_by_workers() -> str:
+    """Make ``import hybrid_raycast`` find this checkout in processes started from here
+    (Dask's worker processes): a temporary folder holding a ``hybrid_raycast`` symlink to
+    the root goes on sys.path (which spawned processes inherit) and PYTHONPATH.  Once per
+    process; removed at exit.  An installed package (``pip install .``) needs none of this."""
+    global _WORKER_PATH
+    if _WORKER_PATH is None:
+        import atexit
+        import os
+        import shutil
+        import tempfile
+
+        _WORKER_PATH = tempfile.mkdtemp(prefix="hrc-pkg-")
+        os.symlink(ROOT, os.path.join(_WORKER_PATH, "hybrid_raycast"))
+        atexit.register(shutil.rmtree, _WORKER_PATH, True)
+        sys.path.append(_WORKER_PATH)
+        os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, (os.environ.get("PYTHONPATH"), _WORKER_PATH)))
+    return _WORKER_PATH
+
+
+_WORKER_PATH = None

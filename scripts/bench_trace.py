@@ -3,6 +3,19 @@
     .venv/bin/python scripts/bench_trace.py                       # 10k, 100k, 1M; 100k rays; 5 repeats
     .venv/bin/python scripts/bench_trace.py --sizes 10k --rays 10000 --repeats 2
     .venv/bin/python scripts/bench_trace.py --sizes 1m --memory-check   # + 10M rays through grid and BVH
+    .venv/bin/python scripts/bench_trace.py --engines                   # the engine table (make bench-trace)
+    .venv/bin/python scripts/bench_trace.py --scale 10m                 # Suzanne instanced 10x: build, trace, peak memory
+
+The engine table (``--engines``): on 3 icospheres (983,040 triangles) and Suzanne at
+level 5 (1,007,616), 1M random rays and about 1M camera rays, raw embreex (a thread
+pool over 64k-ray chunks, and one thread), ``core.build(mesh, 'embree')`` with its
+defaults and with threads=1, the numpy BVH and grid, Blender's BVHTree loop (on a
+strided subset) and Open3D's ``RaycastingScene.cast_rays``, which runs in its own venv
+(``.venv-open3d``; scripts/bench_open3d.py) on the same rays saved to a temporary
+directory.  Columns: build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and
+the share of rays that hit the same triangle as raw embreex.
+
+The per-size table (the default):
 
 Scenes are Blender's Suzanne under a Subdivision Surface modifier, at the level whose
 triangle count is nearest (in log scale) to each requested size: level 2 = 15,744,
@@ -148,7 +161,13 @@ def _trim():
 
 
 class PeakMemory:
-    """Peak extra memory of a block: RSS high-water mark (Linux) and tracemalloc's peak."""
+    """Peak extra memory of a block: RSS high-water mark (Linux) and tracemalloc's peak
+    (``traced=False``: RSS only; tracemalloc slows code that allocates per element, such
+    as embreex's geometry copy, by 10x or more)."""
+
+    def __init__(self, traced=True):
+        self.trace_python = traced
+        self.traced = None
 
     def __enter__(self):
         _trim()
@@ -158,12 +177,14 @@ class PeakMemory:
             self.rss0 = _proc_status("VmRSS")
         except OSError:
             self.rss0 = None
-        tracemalloc.start()
+        if self.trace_python:
+            tracemalloc.start()
         return self
 
     def __exit__(self, *exc):
-        self.traced = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
+        if self.trace_python:
+            self.traced = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
         hwm = _proc_status("VmHWM") if self.rss0 is not None else None
         self.rss = None if hwm is None else max(0, hwm - self.rss0)
         return False
@@ -236,12 +257,10 @@ class ProjectTracer:
         self.name = kind
         self.kind = kind
         self.mesh = scene["mesh"]
-        self.config = {} if threads is None or kind == "embree" else {"threads": threads}
+        self.config = {} if threads is None else {"threads": threads}
         self.accel = None
-        try:
-            core.build(core.TriangleMesh(np.eye(3, dtype=np.float32), [[0, 1, 2]]), kind)
-        except Exception as e:  # a structure still being written, or embreex missing
-            raise Unavailable(f"{type(e).__name__}: {e}") from None
+        if kind == "embree" and not core.embree_available():
+            raise Unavailable("embreex is not installed")
 
     def build(self):
         self.accel = core.build(self.mesh, self.kind, **self.config)
@@ -781,14 +800,385 @@ def versions():
     return out
 
 
+# -- the engine table (--engines) ---------------------------------------------------------
+#: the scenes of the engine table: name -> what it is
+ENGINE_SCENES = {
+    "icospheres": "3 geodesic spheres (frequency 128, 327,680 triangles each), radius 1, centres 2.5 apart on x",
+    "suzanne": "Suzanne, Subdivision Surface level 5, evaluated by Blender",
+}
+OPEN3D_PYTHON = ROOT / ".venv-open3d" / "bin" / "python"
+
+
+def icospheres_mesh():
+    from hybrid_raycast.core.scenes import geodesic_sphere_arrays
+
+    v, t = geodesic_sphere_arrays(128)
+    vertices = np.concatenate([v + (x, 0.0, 0.0) for x in (-2.5, 0.0, 2.5)])
+    triangles = np.concatenate([t + i * len(v) for i in range(3)])
+    return core.TriangleMesh(vertices, triangles)
+
+
+def engine_scene(name, args):
+    mesh = icospheres_mesh() if name == "icospheres" else core.TriangleMesh(*monkey_triangles(5))
+    cam = camera_setup(mesh, args.rays)
+    rays = {"random": uniform_rays(mesh, args.rays, args.seed), "camera": camera_rays(**cam)}
+    return dict(name=name, what=ENGINE_SCENES[name], mesh=mesh, rays=rays, camera=cam)
+
+
+class RawEmbreex:
+    """embreex as a user would call it: EmbreeScene(robust=True), the indexed
+    TriangleMesh(scene, vertices, triangles), a one-ray run to commit; trace =
+    ``scene.run(o, d, output=1)`` over 65,536-ray chunks on a thread pool (embreex's ray
+    loop releases the GIL).  Build is split into geometry (embreex copying the arrays
+    into Embree's buffers) and commit (Embree's BVH build)."""
+
+    chunk = 1 << 16
+
+    def __init__(self, mesh, threads):
+        from embreex import mesh_construction, rtcore_scene
+
+        self.rtcore_scene, self.mesh_construction = rtcore_scene, mesh_construction
+        self.name = f"raw embreex, {threads}-thread pool over 64k-ray chunks"
+        self.mesh, self.threads, self.scene = mesh, threads, None
+
+    def build(self):
+        self.scene = None
+        gc.collect()
+        t0 = time.perf_counter()
+        scene = self.rtcore_scene.EmbreeScene(robust=True)
+        self._geometry = self.mesh_construction.TriangleMesh(scene, self.mesh.vertices, self.mesh.triangles)
+        t1 = time.perf_counter()
+        one = np.zeros((1, 3), np.float32)
+        scene.run(one, one + np.float32(1), dists=np.zeros(1, np.float32))
+        t2 = time.perf_counter()
+        self.scene, self.split = scene, (t1 - t0, t2 - t1)
+        return t2 - t0
+
+    def _run(self, a):
+        o, d = self._rays
+        r = self.scene.run(o[a : a + self.chunk], d[a : a + self.chunk], output=1)
+        return r["primID"]
+
+    def trace(self, o, d):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._rays = (o, d)
+        starts = range(0, len(o), self.chunk)
+        if self.threads <= 1:
+            return np.concatenate([self._run(a) for a in starts]).astype(np.int64)
+        with ThreadPoolExecutor(self.threads) as pool:
+            return np.concatenate(list(pool.map(self._run, starts))).astype(np.int64)
+
+
+class EngineProject:
+    """``core.build(mesh, kind, **config)``; trace returns the triangle index per ray."""
+
+    def __init__(self, mesh, kind, label, **config):
+        if kind == "embree" and not core.embree_available():
+            raise Unavailable("embreex is not installed")
+        self.name, self.mesh, self.kind, self.config, self.accel = label, mesh, kind, config, None
+
+    def build(self):
+        self.accel = None
+        gc.collect()
+        self.accel = core.build(self.mesh, self.kind, **self.config)
+        return self.accel.build_time
+
+    def trace(self, o, d):
+        return self.accel.trace(o, d).triangle.astype(np.int64)
+
+
+class EngineBVHTree(BVHTreeLoop):
+    """Blender's BVHTree, a Python loop of ray_cast per ray, on an evenly strided subset."""
+
+    def __init__(self, mesh, cap):
+        super().__init__({"mesh": mesh}, None)
+        self.cap = cap
+        self.name = f"mathutils BVHTree, per-ray loop ({cap:,} rays)"
+
+    def trace(self, o, d):
+        return super().trace(o, d)[1]
+
+
+class Open3DServer:
+    """Open3D's RaycastingScene in .venv-open3d (scripts/bench_open3d.py), driven one
+    command at a time so its runs interleave with the others'; times are measured inside
+    that process (no pipe overhead)."""
+
+    def __init__(self, scene, tmp):
+        import subprocess
+
+        if not OPEN3D_PYTHON.exists():
+            raise Unavailable("no .venv-open3d (make open3d-venv)")
+        mesh = scene["mesh"]
+        np.savez(tmp / "mesh.npz", vertices=mesh.vertices, triangles=mesh.triangles.astype(np.uint32))
+        paths = []
+        for kind, (o, d) in scene["rays"].items():
+            paths.append(tmp / f"{kind}.npy")
+            np.save(paths[-1], np.concatenate([o, d], axis=1).astype(np.float32))
+        self.tmp, self.kinds = tmp, list(scene["rays"])
+        self.proc = subprocess.Popen(
+            [str(OPEN3D_PYTHON), str(ROOT / "scripts" / "bench_open3d.py"), str(tmp / "mesh.npz"), *map(str, paths),
+             "--out", str(tmp)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        hello = self._read()
+        if "error" in hello:
+            self.close()
+            raise Unavailable(hello["error"])
+        self.name = f"Open3D {hello['open3d']} RaycastingScene.cast_rays (own venv, numpy {hello['numpy']})"
+
+    def _read(self):
+        line = self.proc.stdout.readline()
+        if not line:
+            err = self.proc.stderr.read()[-300:]
+            raise Unavailable(f"bench_open3d.py stopped: {err.strip()}")
+        return json.loads(line)
+
+    def _ask(self, cmd):
+        self.proc.stdin.write(cmd + "\n")
+        self.proc.stdin.flush()
+        out = self._read()
+        if "error" in out:
+            raise RuntimeError(out["error"])
+        return out
+
+    def build(self):
+        return self._ask("build")["s"]
+
+    def trace_named(self, kind):
+        return self._ask(f"trace {kind}")["s"]
+
+    def primitives(self):
+        self._ask("quit")
+        self.proc.wait(timeout=60)
+        return {k: np.load(self.tmp / f"{k}.prim.npy") for k in self.kinds}
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def engine_rows(scene, args, tmp):
+    """Build every tracer ``--repeats`` times and time its traces ``--repeats`` times,
+    round-robin (one run of each tracer per round), so a change in the machine's load
+    hits every tracer alike."""
+    mesh = scene["mesh"]
+    threads = core.accel.default_threads() if args.threads is None else args.threads
+    has_embree = core.embree_available()
+    makers = [
+        ("raw", lambda: RawEmbreex(mesh, threads)),
+        ("raw1", lambda: RawEmbreex(mesh, 1)),
+        ("embree", lambda: EngineProject(mesh, "embree", f"core.build(mesh, 'embree'), defaults ({core.accel.default_threads()} threads)")),
+        ("embree1", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', threads=1)", threads=1)),
+        ("bvh", lambda: EngineProject(mesh, "bvh", f"numpy BVH ({threads} threads)", threads=threads)),
+        ("grid", lambda: EngineProject(mesh, "grid", f"numpy grid ({threads} threads)", threads=threads)),
+        ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
+        ("open3d", lambda: Open3DServer(scene, tmp)),
+    ]
+    caps = {"bvh": args.numpy_rays, "grid": args.numpy_rays, "bvhtree": args.loop_rays}
+    tracers, rows = {}, {}
+    for key, make in makers:
+        if key in ("raw", "raw1", "embree", "embree1") and not has_embree:
+            rows[key] = dict(name=key, error="embreex is not installed")
+            continue
+        try:
+            tracers[key] = make()
+        except (Unavailable, ImportError) as e:
+            rows[key] = dict(name=key, error=str(e))
+    try:
+        for key, tr in tracers.items():
+            rows[key] = dict(name=tr.name, builds=[], traces={k: [] for k in scene["rays"]}, prim={}, rays={})
+        for _ in range(args.repeats):
+            for key, tr in tracers.items():
+                rows[key]["builds"].append(tr.build())
+                if key == "raw":
+                    rows[key].setdefault("splits", []).append(tr.split)
+        for kind, (o, d) in scene["rays"].items():
+            for _ in range(args.repeats):
+                for key, tr in tracers.items():
+                    sub = strided(len(o), caps[key]) if key in caps else slice(None)
+                    oo, dd = o[sub], d[sub]
+                    if key == "open3d":
+                        rows[key]["traces"][kind].append(tr.trace_named(kind))
+                    else:
+                        t0 = time.perf_counter()
+                        rows[key]["prim"][kind] = tr.trace(oo, dd)
+                        rows[key]["traces"][kind].append(time.perf_counter() - t0)
+                    rows[key]["rays"][kind] = len(oo)
+        if "open3d" in tracers:
+            rows["open3d"]["prim"] = tracers["open3d"].primitives()
+    finally:
+        if "open3d" in tracers:
+            tracers["open3d"].close()
+        tracers.clear()
+        gc.collect()
+    return rows
+
+
+def print_engine_tables(scene, rows):
+    mesh = scene["mesh"]
+    med = statistics.median
+
+    def rate(key, kind):
+        r = rows.get(key, {})
+        return r["rays"][kind] / med(r["traces"][kind]) if "traces" in r else None
+
+    for kind, (o, d) in scene["rays"].items():
+        m = len(o)
+        desc = ("origins uniform in the box padded by 1%, directions uniform on the sphere" if kind == "random" else
+                "pinhole camera {width}x{height}, fov {fov_deg:g} deg, looking at the scene's centre".format(**scene["camera"]))
+        print(f"\n### {scene['name']} ({scene['what']}): N = {mesh.triangle_count:,} triangles; {kind} rays, "
+              f"M = {m:,} ({desc})\n")
+        print("| tracer | rays traced | build s | Mrays/s | x raw embreex | x Open3D | hit % | same triangle as raw embreex % |")
+        print("|---|--:|--:|--:|--:|--:|--:|--:|")
+        ref = rows.get("raw", {}).get("prim", {}).get(kind)
+        for key, r in rows.items():
+            if "error" in r:
+                print(f"| {r['name']} | n/a: {r['error']} | | | | | | |")
+                continue
+            prim = r["prim"][kind]
+            same = "n/a"
+            if ref is not None:
+                same = f"{100 * np.mean(prim == (ref if len(prim) == m else ref[strided(m, len(prim))])):.3f}"
+            rps = rate(key, kind)
+            print(f"| {r['name']} | {r['rays'][kind]:,} | {med(r['builds']):#.3g} | {rps / 1e6:#.3g} | {_ratio(rps, rate('raw', kind))}"
+                  f" | {_ratio(rps, rate('open3d', kind))} | {100 * np.mean(prim >= 0):.1f} | {same} |")
+    raw, o3d = rows.get("raw", {}), rows.get("open3d", {})
+    if "splits" in raw:
+        g = med(s[0] for s in raw["splits"])
+        c = med(s[1] for s in raw["splits"])
+        print(f"\nraw embreex build = geometry {g:.3f} s (embreex's mesh_construction.TriangleMesh copying the arrays) "
+              f"+ commit {c:.3f} s (Embree's BVH build)" + (f"; Open3D's whole build {med(o3d['builds']):.3f} s." if "builds" in o3d else "."))
+
+
+def engine_goals(scene, rows):
+    med = statistics.median
+
+    def rate(key, kind):
+        r = rows.get(key, {})
+        return r["rays"][kind] / med(r["traces"][kind]) if "traces" in r else None
+
+    def build(key):
+        r = rows.get(key, {})
+        return med(r["builds"]) if "builds" in r else None
+
+    print(f"\n### Goals, {scene['name']}\n")
+    print("| ratio | random rays | camera rays | goal |")
+    print("|---|--:|--:|---|")
+    kinds = list(scene["rays"])
+    lines = [
+        ("project Embree (defaults) / raw threaded embreex, trace", ("embree", "raw"), ">= 0.85x"),
+        ("project Embree (defaults) / Open3D, trace", ("embree", "open3d"), ">= 0.8x"),
+        ("project Embree, 2 threads / 1 thread", ("embree", "embree1"), "reported (>= 1.7x)"),
+        ("raw embreex, pool / 1 thread", ("raw", "raw1"), "reported"),
+        ("numpy BVH / BVHTree loop", ("bvh", "bvhtree"), ">= 2x random, >= 1x camera"),
+        ("numpy grid / BVHTree loop", ("grid", "bvhtree"), ">= 1x random"),
+    ]
+    for label, (a, b), goal in lines:
+        print(f"| {label} | {' | '.join(_ratio(rate(a, k), rate(b, k)) for k in kinds)} | {goal} |")
+    print(f"| project Embree build / raw embreex build | {_ratio(build('embree'), build('raw'))} | | <= 1.3x |")
+    print(f"| project Embree build / Open3D build | {_ratio(build('embree'), build('open3d'))} | | reported |")
+
+
+def engines_main(args):
+    import tempfile
+
+    names = [s for s in args.scenes.split(",") if s]
+    for s in names:
+        if s not in ENGINE_SCENES:
+            raise SystemExit(f"unknown scene {s!r}; expected some of {', '.join(ENGINE_SCENES)}")
+    print("# Engine table (scripts/bench_trace.py --engines)\n")
+    print(f"- date {datetime.datetime.now().isoformat(timespec='seconds')}; {os.cpu_count()} cores; load average at start "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print("- " + "; ".join(f"{k} {v}" for k, v in versions().items()))
+    print(f"- medians of {args.repeats} builds and {args.repeats} traces per tracer, run round-robin (one of each "
+          f"tracer per round); M = {args.rays:,} rays per batch (seed {args.seed}); the numpy BVH and grid trace an "
+          f"evenly strided subset of {args.numpy_rays:,}, the BVHTree loop one of {args.loop_rays:,}; Open3D runs "
+          f"in .venv-open3d (scripts/bench_open3d.py) on the same triangles and rays, driven round by round")
+    report = []
+    for name in names:
+        scene = engine_scene(name, args)
+        with tempfile.TemporaryDirectory(prefix="hrc-open3d-") as tmp:
+            rows = engine_rows(scene, args, Path(tmp))
+        print_engine_tables(scene, rows)
+        engine_goals(scene, rows)
+        print(f"\nload average at the end of {name}: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        sys.stdout.flush()
+        report.append(dict(scene=name, triangles=scene["mesh"].triangle_count, load_average_end=os.getloadavg(),
+                           rows={k: {f: v for f, v in r.items() if f != "prim"} for k, r in rows.items()}))
+    return report
+
+
+# -- the scale check (--scale) ------------------------------------------------------------
+def instanced_monkey(copies):
+    """Suzanne at Subdivision Surface level 5 (1,007,616 triangles), ``copies`` times side
+    by side in rows of 5, 3 units apart (the monkey is about 2.7 wide): a plain triangle
+    soup of copies x 1,007,616 triangles, as instancing extracts it."""
+    v, t = monkey_triangles(5)
+    vertices = np.empty((copies * len(v), 3), np.float32)
+    triangles = np.empty((copies * len(t), 3), np.int32)
+    for i in range(copies):
+        vertices[i * len(v) : (i + 1) * len(v)] = v + np.array([3.0 * (i % 5), 3.0 * (i // 5), 0.0], np.float32)
+        triangles[i * len(t) : (i + 1) * len(t)] = t + i * len(v)
+    return core.TriangleMesh(vertices, triangles)
+
+
+def scale_check(args):
+    """Build and trace each structure once on the instanced scene, with its peak memory."""
+    import resource
+
+    copies = max(1, round(parse_size(args.scale) / MONKEY_TRIANGLES[5]))
+    t0 = time.perf_counter()
+    mesh = instanced_monkey(copies)
+    made = time.perf_counter() - t0
+    o, d = uniform_rays(mesh, args.rays, args.seed)
+    mesh_bytes = mesh.vertices.nbytes + mesh.triangles.nbytes + mesh.tri_vertices.nbytes + mesh.valid.nbytes
+    print(f"# Scale check (scripts/bench_trace.py --scale {args.scale})\n")
+    print(f"- date {datetime.datetime.now().isoformat(timespec='seconds')}; {os.cpu_count()} cores; load average at start "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}; physical memory "
+          f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.1f} GiB")
+    print(f"- scene: Suzanne at level 5 instanced {copies}x (rows of 5, 3 units apart): N = {mesh.triangle_count:,} "
+          f"triangles, {len(mesh.vertices):,} vertices, made in {made:.1f} s; the TriangleMesh holds {_mib(mesh_bytes)} MiB")
+    print(f"- {args.rays:,} random rays (origins uniform in the box padded by 1%, directions uniform), "
+          f"{_mib(o.nbytes + d.nbytes)} MiB; one build and one trace per structure, default threads")
+    print("- extra RSS: the structure's build + trace peak over the resident mesh and rays (VmHWM after a reset; "
+          "tracemalloc stays off, it slows embreex's geometry copy tenfold), the Hits output included\n")
+    print("| structure | build s | trace s | Mrays/s | hit % | extra RSS MiB |")
+    print("|---|--:|--:|--:|--:|--:|")
+    out = []
+    kinds = [k for k in args.kinds.split(",") if k in ("embree", "bvh", "grid")]
+    for kind in kinds:
+        if kind == "embree" and not core.embree_available():
+            print("| embree | n/a: embreex is not installed | | | | |")
+            continue
+        with PeakMemory(traced=False) as pm:
+            acc = core.build(mesh, kind)
+            t0 = time.perf_counter()
+            hits = acc.trace(o, d)
+            ts = time.perf_counter() - t0
+            b = acc.build_time
+            del acc
+        hit = float(np.mean(hits.hit))
+        print(f"| {kind} | {b:.2f} | {ts:.2f} | {len(o) / ts / 1e6:.3f} | {100 * hit:.1f} | {_mib(pm.rss)} |")
+        sys.stdout.flush()
+        out.append(dict(kind=kind, build_s=b, trace_s=ts, hit_fraction=hit, peak_rss_bytes=pm.rss))
+        del hits
+        _trim()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(f"\nprocess peak RSS (getrusage ru_maxrss), scene making included: {_mib(peak)} MiB; "
+          f"load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return dict(triangles=mesh.triangle_count, copies=copies, rays=len(o), process_peak_rss_bytes=peak, structures=out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="10k,100k,1m", help="scene sizes in triangles (nearest subdivision level)")
-    ap.add_argument("--rays", type=int, default=100_000, help="rays per batch (the camera image is about this many pixels)")
+    ap.add_argument("--rays", type=int, default=None,
+                    help="rays per batch, the camera image about this many pixels (default 100,000; --engines: 1,000,000)")
     ap.add_argument("--repeats", type=int, default=5, help="runs per measurement; medians are reported")
     ap.add_argument("--kinds", default=",".join(PROJECT_KINDS), help="project structures to measure")
     ap.add_argument("--peers", default=",".join(PEERS), help="peers to measure ('none' for none)")
-    ap.add_argument("--threads", type=int, default=None, help="threads for grid/bvh/brute (default: the library's)")
+    ap.add_argument("--threads", type=int, default=None, help="threads per structure (default: the library's)")
     ap.add_argument("--ref-rays", type=int, default=2000, help="rays checked against the float64 reference")
     ap.add_argument("--brute-rays", type=int, default=2000, help="rays traced by brute force")
     ap.add_argument("--trimesh-rays", type=int, default=1000, help="rays traced by trimesh")
@@ -796,7 +1186,32 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-check", action="store_true", help="also trace --memory-rays random rays with grid and BVH on the largest scene")
     ap.add_argument("--memory-rays", type=int, default=10_000_000)
     ap.add_argument("--json", type=Path, help="write every measurement here")
+    ap.add_argument("--engines", action="store_true",
+                    help="the engine table instead: raw embreex, the project's Embree, numpy BVH and grid, the BVHTree "
+                         "loop and Open3D on --scenes with --rays (default 1M) random and camera rays")
+    ap.add_argument("--scenes", default=",".join(ENGINE_SCENES), help="scenes of the engine table")
+    ap.add_argument("--loop-rays", type=int, default=200_000, help="rays the BVHTree loop traces in the engine table")
+    ap.add_argument("--numpy-rays", type=int, default=262_144, help="rays the numpy BVH and grid trace in the engine table")
+    ap.add_argument("--scale", help="instead: build and trace embree, bvh and grid once on Suzanne (level 5) instanced "
+                                    "to about this many triangles (e.g. 10m), with peak memory; --rays (default 1M)")
     args = ap.parse_args(argv)
+    if args.scale:
+        args.rays = args.rays or 1_000_000
+        if args.kinds == ",".join(PROJECT_KINDS):
+            args.kinds = "embree,bvh,grid"
+        report = scale_check(args)
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=1, default=_json_value))
+        return 0
+    if args.engines:
+        args.rays = args.rays or 1_000_000
+        report = engines_main(args)
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=1, default=_json_value))
+        return 0
+    args.rays = args.rays or 100_000
     kinds = [k for k in args.kinds.split(",") if k]
     peers = [p for p in args.peers.split(",") if p and p != "none"]
     for name in kinds + peers:
@@ -821,7 +1236,7 @@ def main(argv=None) -> int:
           f"{', '.join(f'{x:.2f}' for x in header['load_average'])}")
     print("- " + "; ".join(f"{k} {v}" for k, v in header["versions"].items()))
     print(f"- medians of {args.repeats} runs; rays per batch M = {args.rays:,} (seed {args.seed}); "
-          f"threads for grid/bvh: {args.threads or 'library default'}; Embree on one thread (embreex traces one ray at a time)")
+          f"threads per structure: {args.threads or 'library default'}")
     print("- ray batches: random (the paper's: origins uniform in the scene box padded by 1%, directions uniform "
           "on the sphere) and camera (pinhole primary rays, row-major from the top row)")
     print(f"- caps: brute force on {args.brute_rays:,} rays and only up to 20k triangles; trimesh on "

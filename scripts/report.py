@@ -420,7 +420,7 @@ def write_markdown(path: Path, R: dict):
       f"density, and the grid's time per ray taken as the K-sample time times the calibration's small-batch ratio "
       f"for K (`Plan.grid_per_ray`). Totals for 1e3..1e8 rays are extrapolated from the measured build and "
       f"per-ray times (T_B + R t), the paper's method. Threads per structure: numpy grid and BVH "
-      f"{meta['threads'].get('grid')}, Embree (embreex) 1.\n")
+      f"{meta['threads'].get('grid')}, Embree (embreex) {meta['threads'].get('embree', 'not measured')}.\n")
     # -- headline
     ratio = cal.get("ratio_at_samples") or {}
     w("## Headline (grid against the numpy BVH, the paper's setting)\n")

@@ -2,7 +2,7 @@
 
 Möller and Trumbore, "Fast, minimum storage ray-triangle intersection" (JGT 1997),
 evaluated in float64 over every (ray, triangle) pair that survives a conservative
-bounding-sphere cull.  Conventions follow DESIGN.md: nearest hit with
+bounding-sphere cull.  Conventions follow ../shared/DESIGN.md: nearest hit with
 tmin < t <= tmax, lowest triangle index on an exact tie, both faces hit, degenerate
 (zero-area) triangles never hit, t in units of the given (unnormalised) direction.
 

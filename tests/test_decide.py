@@ -184,3 +184,12 @@ def test_a_plan_says_which_candidates_are_missing_and_why(monkeypatch):
     assert set(p.unavailable) == {"bvh", "embree"}
     assert "no calibration constants" in p.unavailable["bvh"] and p.unavailable["embree"]
     assert p.to_dict()["unavailable"] == p.unavailable
+
+
+def test_the_compatibility_modules_name_the_one_home():
+    """core.calibration and core.report only re-export core.decide (other code imports them)."""
+    from hybrid_raycast.core import calibration, decide, report
+
+    assert calibration.calibrate is decide.calibrate and calibration.Calibration is decide.Calibration
+    assert calibration.break_even is cost.break_even and report.break_even is cost.break_even
+    assert report.hybrid_choice is ev.hybrid_choice

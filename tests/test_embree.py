@@ -131,3 +131,46 @@ def test_embree_build_time_includes_the_commit():
     acc = core.build(core.TriangleMesh(tris.reshape(-1, 3), np.arange(60000).reshape(-1, 3)), "embree")
     assert acc.scene.is_committed, "the Embree scene must be committed (its BVH built) by build()"
     assert acc.build_time > 0
+
+
+@needs_embree
+@pytest.mark.parametrize("threads", [1, 2])
+def test_concurrent_traces_on_one_structure_match_a_single_thread_trace(threads):
+    """embreex releases the GIL in its ray loop, so two Python threads really trace one
+    scene at once: each must get exactly the hits its rays get when traced alone."""
+    import threading
+
+    from hybrid_raycast.core import scenes
+
+    mesh = scenes.make_scene("city", 20000, seed=3)
+    acc = core.build(mesh, "embree", threads=threads, chunk_size=8192)
+    batches = []
+    for seed in (1, 2):
+        o, d = core.uniform_rays(mesh, 60_000, seed=seed)
+        tmin = np.where(np.arange(len(o)) % 3 == 0, np.float32(0.05), np.float32(0))  # moved and fresh rays
+        batches.append((o, d, tmin))
+    alone = [acc.trace(o, d, tmin) for o, d, tmin in batches]
+    alone_occ = [acc.occluded(o, d, tmin) for o, d, tmin in batches]
+    start = threading.Barrier(2)
+    got = [[], []]
+
+    def worker(i):
+        o, d, tmin = batches[i]
+        start.wait()
+        for _ in range(3):
+            got[i].append((acc.trace(o, d, tmin), acc.occluded(o, d, tmin)))
+
+    workers = [threading.Thread(target=worker, args=(i,)) for i in range(2)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    for i in range(2):
+        assert len(got[i]) == 3, f"thread {i} did not finish its traces"
+        for run, (h, occ) in enumerate(got[i]):
+            for f in ("t", "triangle", "u", "v"):
+                a, b = getattr(h, f), getattr(alone[i], f)
+                bad = np.flatnonzero(~((a == b) | (np.isnan(a) & np.isnan(b))))
+                assert bad.size == 0, f"thread {i} run {run}: {f} differs from the lone trace at rays {bad[:5].tolist()}"
+            bad = np.flatnonzero(occ != alone_occ[i])
+            assert bad.size == 0, f"thread {i} run {run}: occluded differs at rays {bad[:5].tolist()}"

@@ -1,4 +1,4 @@
-"""DESIGN.md's numerical hard cases, one named test each, for every numpy structure.
+"""The numerical hard cases of ../shared/DESIGN.md, one named test each, for every numpy structure.
 
 Every test checks the property the case is about *and* that the structure returns
 exactly what brute force returns (the same kernel, so the same triangle and the same

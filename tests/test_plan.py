@@ -15,7 +15,7 @@ from hybrid_raycast.core import build, scenes
 from hybrid_raycast.core.decide import Calibration, KindFit
 from hybrid_raycast.core.hits import Hits
 from hybrid_raycast.core.mesh import TriangleMesh
-from hybrid_raycast.core.plan import plan, plan_from_timings, trace_online, trace_planned
+from hybrid_raycast.core.plan import plan, plan_from_timings, trace_online
 from hybrid_raycast.core.rays import uniform_rays
 
 
@@ -227,7 +227,7 @@ def test_small_plan_reuses_its_grid_and_matches_brute_force():
     p = plan(mesh, 1, cal_of(bvh=(1e-7, 1e-7)), samples=200, kinds=("grid", "bvh"))
     assert p.decision == "GRID" and p.samples == 200 and p.grid_per_ray > 0 and p.grid_build_time > 0
     assert p.accel() is p.grid, "the grid that won must be reused, not rebuilt"
-    _assert_same(trace_planned(p, o, d), ref, "planned grid")
+    _assert_same(p.trace(o, d), ref, "planned grid")
     assert p.structure is None and [e["kind"] for e in p.executed] == ["grid"], p.executed
     json.dumps(p.to_dict(), allow_nan=False)
 

@@ -15,7 +15,8 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from ..accel import Accel, build
+from ..accel import Accel
+from ..factory import build
 from ..mesh import TriangleMesh
 from .calfile import Calibration
 from .work import Work, grid_work

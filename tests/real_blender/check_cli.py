@@ -6,7 +6,8 @@ The extension is enabled in the user preferences (installed with `-e`), which is
 registers the command.  Checks the exit codes (0, and 2-6 for each failure, with one
 line from the add-on on stderr; a missing or non-.blend file before -c and --rays inf
 exit 2), the JSON of every command, that ``--json -`` leaves nothing but the JSON on
-stdout, and that ``trace --workload ao --save`` writes the bake into the loaded file.  Writes
+stdout, that ``trace --workload ao --save`` writes the bake into the loaded file, and that
+``export`` writes a scene file per frame that numpy reads without pickle.  Writes
 real_blender_cli.json; exits 1 on the first failure.
 """
 
@@ -97,6 +98,18 @@ subprocess.run(["blender", "-b", str(WORK / "ao.blend"), "--python-expr",
 check("the saved .blend holds the AO bake", probe.is_file() and probe.read_text() == "True",
       probe.read_text() if probe.is_file() else "no probe output")
 check("no temporary save file is left", not (WORK / "ao.blend@").exists())
+
+code, out, err, p = blender("demo.blend", "export", "--frames", "1-2", "--output", str(WORK / "scenes"))
+check("export exits 0 with a progress line per frame on stderr",
+      code == 0 and sum(x.startswith("hybrid_raycast export: frame ") for x in err) == 2, f"rc={code} {err}")
+import numpy as np  # noqa: E402  (Debian's numpy 2.x: the scene file is plain .npz, read without pickle)
+
+for frame in (1, 2):
+    with np.load(WORK / "scenes" / f"frame_{frame:04d}.npz", allow_pickle=False) as z:
+        check(f"export frame {frame}: a scene file with the analyzed triangles",
+              str(z["format"]) == "hybrid_raycast.scene" and int(z["frame"]) == frame
+              and z["vertices"].dtype == np.float32 and len(z["triangles"]) == doc["summary"]["triangles"]
+              and len(z["object_index"]) == len(z["triangles"]), f"{len(z['triangles'])} triangles")
 
 code, out, err, p = blender(None, "calibrate", "--scale", "tiny", "--calibration", str(WORK / "cli_cal.json"))
 check("calibrate exits 0 and writes the file", code == 0 and (WORK / "cli_cal.json").is_file(), f"rc={code} {err}")

@@ -1,0 +1,334 @@
+"""Tracing on a Dask cluster: the scene as a file the workers read, the rays as dask arrays.
+
+``trace(path, origins, directions)`` takes (M, 3) dask arrays chunked by rows and returns
+dask arrays ``t``, ``triangle``, ``u``, ``v``, ``object_index`` chunked like them.  Each
+block is traced by a task that asks its worker process for the structure: the first task
+on a worker reads the scene file (``core.save_mesh``) and builds it, every later task
+reuses it.  The cache is keyed by the file's path, the SHA-256 of its bytes as the client
+saw them (a worker that reads different bytes fails instead of tracing another scene;
+node-local copies with other modification times still hit), the kind and its options.
+
+``kind="auto"`` decides once, on the client, for the whole array: ``core.plan`` with the
+caller's calibration or the shipped one, the expected rays defaulting to the array's
+length, then every worker builds the chosen kind.  Each worker builds its own structure,
+so W workers pay W builds; pass ``expected_rays=M / W`` to weigh that.
+
+Fault tolerance is Dask's: a block is a pure function of its rays and the scene file, so
+when a worker dies the scheduler recomputes its blocks elsewhere and the answers are the
+same.  A missing or foreign scene file is reported on the client before any task runs.
+
+dask is imported when a function here is called; without it they raise ImportError
+saying what to install (``pip install hybrid_raycast[dask]``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .factory import KINDS, build
+from .meshio import check_scene, file_digest, read_scene
+
+#: one traced ray; a block of rays becomes one structured array, the public arrays are its fields
+RESULT_DTYPE = np.dtype([("t", np.float32), ("triangle", np.int32), ("u", np.float32), ("v", np.float32),
+                         ("object_index", np.int32)])
+FIELDS = RESULT_DTYPE.names
+#: structures one worker process keeps, least recently used dropped first: trace_frames'
+#: tasks go roughly frame by frame, so a few bound the memory without rebuilding
+CACHE_SIZE = 4
+
+
+def _dask_array():
+    try:
+        import dask.array as da
+    except ImportError as e:
+        raise ImportError("core.distributed needs dask: pip install 'hybrid_raycast[dask]' "
+                          f"(dask[array] and distributed); {e}") from None
+    return da
+
+
+@dataclass(frozen=True)
+class SceneRef:
+    """A scene file as the tasks name it: the absolute path and the SHA-256 the client read."""
+
+    path: str
+    digest: str
+
+    @classmethod
+    def of(cls, path) -> "SceneRef":
+        """Check ``path`` on the client: FileNotFoundError or core.SceneFileError naming it."""
+        p = Path(path).expanduser().absolute()
+        check_scene(p)
+        return cls(str(p), file_digest(p))
+
+    def label(self) -> str:
+        return f"{Path(self.path).name}@{self.digest[:12]}"
+
+
+# -- the worker side -----------------------------------------------------------------------------
+
+class _StructureCache:
+    """Structures built in this process, keyed by (path, digest, kind, options); at most
+    ``size`` kept.  Builds of one key are serialised, so threads of a worker build once."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.lock = threading.Lock()
+        self.entries: OrderedDict = OrderedDict()
+        self.building: dict = {}
+        self.builds: Counter = Counter()
+        self.blocks: Counter = Counter()
+        #: seconds per (scene label, kind): building, tracing (wall), tracing (this thread's CPU)
+        self.seconds: dict = {"build": Counter(), "trace": Counter(), "trace_cpu": Counter()}
+
+    def _cached(self, key):
+        with self.lock:
+            acc = self.entries.get(key)
+            if acc is not None:
+                self.entries.move_to_end(key)
+            return acc
+
+    def get(self, scene: SceneRef, kind: str, config: tuple):
+        key = (scene.path, scene.digest, kind, config)
+        acc = self._cached(key)
+        if acc is not None:
+            return acc
+        with self.lock:
+            key_lock = self.building.setdefault(key, threading.Lock())
+        with key_lock:
+            acc = self._cached(key)
+            if acc is None:
+                mesh = read_scene(scene.path, expect_digest=scene.digest).mesh
+                acc = build(mesh, kind, **dict(config))
+                with self.lock:
+                    self.entries[key] = acc
+                    self.builds[(scene.label(), kind)] += 1
+                    self.seconds["build"][(scene.label(), kind)] += acc.build_time
+                    while len(self.entries) > self.size:
+                        self.entries.popitem(last=False)
+                    self.building.pop(key, None)
+        return acc
+
+    def traced(self, scene: SceneRef, kind: str, wall: float, cpu: float):
+        key = (scene.label(), kind)
+        with self.lock:
+            self.blocks[key] += 1
+            self.seconds["trace"][key] += wall
+            self.seconds["trace_cpu"][key] += cpu
+
+    def stats(self) -> dict:
+        def named(counter):
+            return {f"{s}:{k}": n for (s, k), n in counter.items()}
+
+        with self.lock:
+            return {"builds": named(self.builds), "blocks": named(self.blocks),
+                    **{f"{what}_s": named(c) for what, c in self.seconds.items()},
+                    "cached": [f"{Path(p).name}@{d[:12]}:{k}" for p, d, k, _ in self.entries]}
+
+    def clear(self):
+        with self.lock:
+            self.entries.clear()
+            for c in (self.builds, self.blocks, *self.seconds.values()):
+                c.clear()
+
+
+_CACHE = _StructureCache(CACHE_SIZE)
+
+
+def worker_stats() -> dict:
+    """This process's structure cache, per '<file>@<digest>:<kind>': builds, traced blocks,
+    seconds spent building (build_s), tracing (trace_s) and this worker thread's CPU seconds
+    while tracing (trace_cpu_s: below trace_s when the machine is oversubscribed), and what
+    is cached.  On a cluster: ``client.run(core.distributed.worker_stats)``."""
+    return _CACHE.stats()
+
+
+def clear_worker_cache() -> None:
+    """Drop this process's structures and counters (``client.run(...)`` frees the workers)."""
+    _CACHE.clear()
+
+
+def _trace_block(origins, directions, tmin, tmax, *, scene: SceneRef, kind: str, config: tuple):
+    acc = _CACHE.get(scene, kind, config)
+    wall, cpu = time.perf_counter(), time.thread_time()
+    hits = acc.trace(origins, directions, tmin, tmax)
+    _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)
+    out = np.empty(len(hits), RESULT_DTYPE)
+    out["t"], out["triangle"], out["u"], out["v"] = hits.t, hits.triangle, hits.u, hits.v
+    obj = np.full(len(hits), -1, np.int32)
+    if acc.mesh.object_index is not None:
+        hit = hits.hit
+        obj[hit] = acc.mesh.object_index[hits.triangle[hit]]
+    out["object_index"] = obj
+    return out
+
+
+# -- the client side -----------------------------------------------------------------------------
+
+@dataclass
+class DistributedHits:
+    """Dask arrays, one entry per ray, chunked like the rays (nothing is computed yet).
+
+    t: float32 (inf on a miss); triangle: int32 (-1 on a miss); u, v: float32 barycentrics;
+    object_index: int32 into the scene file's object names (-1 on a miss).
+    kind: the structure the workers build; plan: the ``core.Plan`` when kind was 'auto'.
+    """
+
+    t: object
+    triangle: object
+    u: object
+    v: object
+    object_index: object
+    kind: str
+    scene: SceneRef
+    plan: object = field(default=None, repr=False)
+
+    @property
+    def hit(self):
+        return self.triangle >= 0
+
+    def compute(self, **kwargs) -> dict:
+        """Every field as a numpy array, in one pass over the graph (each block traced once)."""
+        import dask
+
+        values = dask.compute(*(getattr(self, f) for f in FIELDS), **kwargs)
+        return dict(zip(FIELDS, values))
+
+
+def _as_rows(x, name: str, da):
+    if not isinstance(x, da.Array):
+        raise TypeError(f"{name} must be a dask array (dask.array.from_array(x, chunks=(rows, 3))), "
+                        f"got {type(x).__name__}")
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (M, 3), got {x.shape}")
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise ValueError(f"{name} must be real numbers, got dtype {x.dtype}")
+    return x
+
+
+def _ray_bound(x, name: str, m: int, rows, da):
+    """A scalar stays a literal of every task; a per-ray array is chunked like the rays."""
+    if np.ndim(x) == 0 and not isinstance(x, da.Array):
+        return float(x), None
+    if np.shape(x) != (m,):
+        raise ValueError(f"{name} must be a scalar or have shape ({m},), got {np.shape(x)}")
+    if not isinstance(x, da.Array):
+        x = da.from_array(np.asarray(x), chunks=(rows,))
+    return x.rechunk((rows,)), "i"
+
+
+def _config_key(kind: str, configs: dict | None, threads: int) -> tuple:
+    """The build options of ``kind`` as a hashable, sorted tuple (part of the cache key)."""
+    merged = {"threads": int(threads), **((configs or {}).get(kind) or {})}
+    return tuple(sorted(merged.items()))
+
+
+def _choose(scene: SceneRef, m: int, expected_rays, calibration, configs: dict | None):
+    """(kind, Plan): core.plan over the scene, once, on the client, for ``expected_rays``
+    (default ``m``, the rays given).  No rays and no budget: the grid, unplanned."""
+    from .calibration import Calibration, load_or_default
+    from .plan import plan
+
+    if expected_rays is None:
+        if m == 0:
+            return "grid", None
+        expected_rays = m
+    cal = calibration if isinstance(calibration, Calibration) else load_or_default(calibration)[0]
+    mesh = read_scene(scene.path, expect_digest=scene.digest).mesh
+    p = plan(mesh, expected_rays, cal, grid_config=(configs or {}).get("grid"), configs=configs)
+    return p.chosen, p
+
+
+def _check_kind(kind):
+    if kind != "auto" and kind not in KINDS:
+        raise ValueError(f"kind must be 'auto' or one of {', '.join(KINDS)}, got {kind!r}")
+
+
+def _trace_scene(scene: SceneRef, origins, directions, kind: str, tmin, tmax, config: tuple, plan, da):
+    rows = origins.chunks[0]
+    m = origins.shape[0]
+    origins = origins.rechunk((rows, 3))
+    directions = directions.rechunk((rows, 3))
+    lo, lo_ix = _ray_bound(tmin, "tmin", m, rows, da)
+    hi, hi_ix = _ray_bound(tmax, "tmax", m, rows, da)
+    records = da.blockwise(
+        _trace_block, "i", origins, "ij", directions, "ij", lo, lo_ix, hi, hi_ix,
+        dtype=RESULT_DTYPE, concatenate=True, scene=scene, kind=kind, config=config,
+        name=f"hybrid-raycast-{kind}-" + _token(scene, kind, config, origins, directions, lo, hi),
+    )
+    return DistributedHits(*(records[f] for f in FIELDS), kind=kind, scene=scene, plan=plan)
+
+
+def _token(*parts) -> str:
+    from dask.base import tokenize
+
+    return tokenize(*parts)
+
+
+def trace(path, origins, directions, *, kind: str = "auto", tmin=0.0, tmax=np.inf, expected_rays=None,
+          calibration=None, configs: dict | None = None, threads: int = 1) -> DistributedHits:
+    """Trace rays into the scene file ``path`` on the Dask cluster of the current client.
+
+    origins, directions: (M, 3) dask arrays chunked by rows (one task per block of rows;
+        columns are merged into one chunk, directions rechunked like origins).
+    kind: 'auto' (decide once here, see the module notes), or 'grid', 'bvh', 'embree', 'brute'.
+    tmin, tmax: scalars, or (M,) arrays; hits count for tmin < t <= tmax.
+    expected_rays: the ray budget of the 'auto' decision (default M).
+    calibration: a core.Calibration, a calibration file path, or None for the shipped defaults.
+    configs: build options per kind, {kind: options} as ``core.plan`` takes them ('grid' for
+        the grid); threads: per structure (default 1: Dask runs one task per worker thread).
+    Raises FileNotFoundError / core.SceneFileError naming the file, here, when ``path`` is
+    missing or not a scene file; TypeError/ValueError for malformed arguments.
+    """
+    da = _dask_array()
+    _check_kind(kind)
+    origins = _as_rows(origins, "origins", da)
+    directions = _as_rows(directions, "directions", da)
+    if directions.shape != origins.shape:
+        raise ValueError(f"origins and directions must have the same shape, got {origins.shape} and {directions.shape}")
+    scene = SceneRef.of(path)
+    plan = None
+    if kind == "auto":
+        kind, plan = _choose(scene, origins.shape[0], expected_rays, calibration, configs)
+    return _trace_scene(scene, origins, directions, kind, tmin, tmax, _config_key(kind, configs, threads), plan, da)
+
+
+def trace_frames(paths, origins_list, directions_list, *, kind: str = "auto", tmin: float = 0.0,
+                 tmax: float = np.inf, expected_rays=None, calibration=None, configs: dict | None = None,
+                 threads: int = 1) -> list[DistributedHits]:
+    """One ``trace`` per frame: scene file ``paths[i]`` with rays ``origins_list[i]``,
+    ``directions_list[i]``; the graphs are independent, so ``dask.compute`` over all of them
+    keeps every worker busy.
+
+    Every file is checked here first (a missing one is named before any task runs).
+    kind='auto' decides once, on the first frame, for its ray count (or ``expected_rays``,
+    the rays one frame's structure answers): the frames of one animation are alike, and
+    planning each would build a grid per frame on the client.  tmin, tmax: scalars.
+    """
+    da = _dask_array()
+    _check_kind(kind)
+    paths, origins_list, directions_list = list(paths), list(origins_list), list(directions_list)
+    if not (len(paths) == len(origins_list) == len(directions_list)):
+        raise ValueError(f"paths, origins_list and directions_list must have one entry per frame, got "
+                         f"{len(paths)}, {len(origins_list)} and {len(directions_list)}")
+    if np.ndim(tmin) or np.ndim(tmax):
+        raise ValueError("trace_frames takes scalar tmin and tmax (use trace() per frame for per-ray bounds)")
+    scenes = [SceneRef.of(p) for p in paths]
+    rays = []
+    for i, (o, d) in enumerate(zip(origins_list, directions_list)):
+        o, d = _as_rows(o, f"origins_list[{i}]", da), _as_rows(d, f"directions_list[{i}]", da)
+        if o.shape != d.shape:
+            raise ValueError(f"frame {i}: origins and directions must have the same shape, got {o.shape} and {d.shape}")
+        rays.append((o, d))
+    if not scenes:
+        return []
+    plan = None
+    if kind == "auto":
+        kind, plan = _choose(scenes[0], rays[0][0].shape[0], expected_rays, calibration, configs)
+    key = _config_key(kind, configs, threads)
+    return [_trace_scene(s, o, d, kind, tmin, tmax, key, plan, da) for s, (o, d) in zip(scenes, rays)]

@@ -1,0 +1,32 @@
+"""``build(mesh, kind)``: the one way to make a structure.
+
+It sits above the structures (each of which imports ``Accel`` from ``accel.py``), so
+imports run one way: factory -> structures -> accel.
+"""
+
+from __future__ import annotations
+
+from .accel import Accel
+from .mesh import TriangleMesh
+
+KINDS = ("grid", "bvh", "embree", "brute")
+
+
+def build(mesh: TriangleMesh, kind: str = "bvh", **config) -> Accel:
+    """Build the structure ``kind`` ('grid', 'bvh', 'embree' or 'brute') over ``mesh``.
+
+    ``config`` goes to the structure (each documents its knobs and their defaults),
+    plus ``threads`` and ``chunk_size`` which every structure takes.
+    """
+    kind = str(kind).lower()
+    if kind == "brute":
+        from .brute import BruteForce as cls
+    elif kind == "grid":
+        from .grid import UniformGrid as cls
+    elif kind == "bvh":
+        from .bvh import BVH as cls
+    elif kind == "embree":
+        from .embree import EmbreeAccel as cls
+    else:
+        raise ValueError(f"unknown structure kind {kind!r}; expected one of {', '.join(KINDS)}")
+    return cls(mesh, **config)
