@@ -262,7 +262,7 @@ def model_comparison(scenes, cal: Calibration):
     names = list(dict.fromkeys(list(MODELS) + list(rep.CANDIDATE_MODELS)))
     for m in names:
         loo = rep.loo_break_even_errors(cal.scenes, "bvh", m)
-        held = [rep.reestimate(s, cal.scenes, m) for s in scenes]
+        held = [rep.reestimate(s, cal.scenes, m, keep_per_ray=bool(cal.counts)) for s in scenes]
         comps = [rep.error_components(s) for s in held]
         entry = {
             "loo": rep.error_summary([x["error"] for x in loo]), "loo_scenes": loo,

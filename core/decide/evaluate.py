@@ -438,14 +438,15 @@ def loo_break_even_errors(records: list[SceneRecord], kind: str = "bvh", model: 
     return out
 
 
-def reestimate(s: SceneResult, records: list[SceneRecord], model: str, kinds=("bvh",)) -> SceneResult:
+def reestimate(s: SceneResult, records: list[SceneRecord], model: str, kinds=("bvh",), keep_per_ray: bool = False) -> SceneResult:
     """``s`` with its estimates recomputed from ``records`` under another calibration model
-    (the grid's estimate is kept as it is: only the model changes)."""
+    (the grid's estimate is kept as it is: only the model changes).  keep_per_ray: change
+    only the build estimate (when the per-ray times came from the count models)."""
     est_fn = model_functions(model)[1]
     est = dict(s.estimated)
     for k, f in fit_model(records, kinds, model).items():
         e = est_fn(f, k, s.triangles)
-        est[k] = Cost(e.build, e.per_ray)
+        est[k] = Cost(e.build, s.estimated[k].per_ray if keep_per_ray and k in s.estimated else e.per_ray)
     return replace(s, estimated=est, extra=dict(s.extra))
 
 
