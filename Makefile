@@ -12,7 +12,7 @@ WHEELS := $(shell sed -n 's|^ *"\./\(wheels/[^"]*\.whl\)",*|\1|p' blender_manife
 VERSION := $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 ZIP    := dist/hybrid_raycast-$(VERSION).zip
 
-.PHONY: demo test test-fast real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-distributed report clean
+.PHONY: demo test test-fast real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-distributed bench-scan report clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -75,6 +75,10 @@ $(O3D_VENV)/.stamp: requirements-open3d.txt
 ## core.distributed: 1 vs 2 Dask workers (LocalCluster) against a local trace, 10M rays, ~1.1M triangles.
 bench-distributed: $(VENV)/.stamp
 	$(PY) scripts/bench_distributed.py $(BENCH_ARGS)
+
+## Sensor scans: 64 x 2,048 rays per frame over 100 frames of an animated scene vs a scene.ray_cast loop (timing lock held).
+bench-scan: $(VENV)/.stamp
+	flock /tmp/hrc-bench.lock $(PY) scripts/bench_scan.py
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes
 ## (about 8 minutes; REPORT_ARGS=--quick for a 5-second smoke run).

@@ -24,9 +24,11 @@ def _classes():
     """The one tuple of classes register() walks (imports the Blender parts, so bpy)."""
     global classes
     from . import operators, ui
+    from .operators import scan
     from .settings import HybridRaycastSettings
+    from .ui import scan_panel
 
-    classes = (HybridRaycastSettings, *operators.classes, *ui.classes)
+    classes = (HybridRaycastSettings, *operators.classes, *ui.classes, *scan.classes, *scan_panel.classes)
     return classes
 
 
@@ -42,7 +44,7 @@ def __getattr__(name):
 def register():
     import bpy
 
-    from .operators import cli, state
+    from .operators import cli, scan, session
     from .settings import HybridRaycastSettings
     from .ui import plot
 
@@ -50,7 +52,8 @@ def register():
     for cls in _classes():
         bpy.utils.register_class(cls)
     bpy.types.Scene.hybrid_raycast = bpy.props.PointerProperty(type=HybridRaycastSettings)
-    state.register()
+    scan.register_properties()
+    session.register()
     plot.register()
     if _cli_handle is None and hasattr(bpy.utils, "register_cli_command"):
         _cli_handle = bpy.utils.register_cli_command(cli.COMMAND, cli.handler)
@@ -59,7 +62,7 @@ def register():
 def unregister():
     import bpy
 
-    from .operators import state
+    from .operators import scan, session
     from .ui import plot
 
     global _cli_handle
@@ -67,7 +70,8 @@ def unregister():
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None
     plot.unregister()
-    state.unregister()
+    session.unregister()
+    scan.unregister_properties()
     if hasattr(bpy.types.Scene, "hybrid_raycast"):
         del bpy.types.Scene.hybrid_raycast
     for cls in reversed(_classes()):

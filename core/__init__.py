@@ -16,7 +16,8 @@ from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, uniform_rays
 from . import decide
 from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
-from .plan import Plan, plan, trace_online
+from .plan import Plan, plan, ski_rental, trace_online
+from .multihit import all_hits
 from .scenes import calibration_set
 from . import distributed  # noqa: E402  (core.distributed; imports dask only when called)
 
@@ -25,6 +26,7 @@ __all__ = [
     "Accel",
     "Hits",
     "TriangleMesh",
+    "all_hits",
     "build",
     "Calibration",
     "CalibrationError",
@@ -34,6 +36,7 @@ __all__ = [
     "load_or_default",
     "measure_break_even",
     "plan",
+    "ski_rental",
     "trace_online",
     "camera_rays",
     "embree_available",

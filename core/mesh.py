@@ -16,6 +16,7 @@ class TriangleMesh:
     object_index: (T,) int32, per triangle the index into ``object_names`` (optional)
     polygon_index: (T,) int32, per triangle the source polygon of its object (optional)
     object_names: names of the source objects (optional)
+    instance_index: (T,) int32, per triangle the placement (instance) it belongs to (optional)
 
     Construction validates shapes, indices and finiteness and raises ``ValueError``
     with a message that says what is wrong and where.
@@ -26,6 +27,7 @@ class TriangleMesh:
     object_index: np.ndarray | None = None
     polygon_index: np.ndarray | None = None
     object_names: list[str] = field(default_factory=list)
+    instance_index: np.ndarray | None = None
 
     def __post_init__(self):
         v = np.asarray(self.vertices)
@@ -65,7 +67,7 @@ class TriangleMesh:
         self.vertices = v32
         self.triangles = np.ascontiguousarray(f, dtype=np.int32)
         T = len(self.triangles)
-        for name in ("object_index", "polygon_index"):
+        for name in ("object_index", "polygon_index", "instance_index"):
             a = getattr(self, name)
             if a is not None:
                 a = np.ascontiguousarray(a, dtype=np.int32)

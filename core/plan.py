@@ -495,6 +495,19 @@ class OnlineRecord:
         return d
 
 
+def ski_rental(grid_time: float, grid_rays: int, estimate) -> str:
+    """The online rule, given what the grid has spent so far: 'switch' once the grid's
+    accumulated trace time reaches the structure's estimated build time (Karlin et al.
+    1988: never worse than about twice the best fixed choice), 'never' when the estimate
+    is not faster per ray than the grid has measured (building could never pay),
+    'wait' otherwise.  ``estimate`` is a ``calibration.Estimate`` or None (no constants)."""
+    if estimate is None or grid_time < estimate.build:
+        return "wait" if estimate is not None else "never"
+    if grid_rays <= 0 or estimate.per_ray >= grid_time / grid_rays:
+        return "never"
+    return "switch"
+
+
 def trace_online(
     mesh: TriangleMesh,
     origins,
@@ -512,7 +525,7 @@ def trace_online(
     builder=build,
 ) -> tuple[Hits, OnlineRecord]:
     """Trace with the grid in batches; switch to ``kind`` once the grid's accumulated trace
-    time reaches ``kind``'s estimated build time (ski rental).  Needs no ray count.
+    time reaches ``kind``'s estimated build time (``ski_rental``).  Needs no ray count.
 
     It switches only while the estimate says ``kind`` is faster per ray than the grid has
     measured so far (else building it could never pay).  ``clock`` and ``builder`` are
@@ -552,10 +565,13 @@ def trace_online(
         put(grid.trace(o[done:b], d[done:b], per_ray(tmin, done, b), per_ray(tmax, done, b)), done, b)
         rec.grid_trace_time += clock() - c0
         done = b
-        if done < m and est is not None and rec.grid_trace_time >= rec.estimated_build_time:
-            if est.per_ray >= rec.grid_trace_time / done:
+        if done < m and est is not None:
+            rule = ski_rental(rec.grid_trace_time, done, est)
+            if rule == "never":
                 rec.note = f"{kind} would not be faster per ray than the grid: not switching"
                 est = None
+                continue
+            if rule == "wait":
                 continue
             c0 = clock()
             hds = builder(mesh, kind, **(config or {}))

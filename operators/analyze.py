@@ -20,59 +20,14 @@ import numpy as np
 from .. import core
 from ..budget import ray_budget
 from ..settings import BREAK_EVEN_NEVER as NEVER
-from . import state
+from . import session
 from .calibrate import load_calibration
-from .extract import NoGeometryError, scene_mesh, scene_summary
-from .jobs import BadInput, InvalidGeometry, Job, JobOperator, NoGeometry
+from .jobs import BadInput, Job, JobOperator
+from .session import evaluated as evaluated_depsgraph
+from .session import extract  # noqa: F401  (operators.analyze.extract: the extraction with one-line errors)
 from .summary import store_summary
 
 RECORD_FORMAT = 1
-
-
-# -- the evaluated scene ---------------------------------------------------------------
-
-def evaluated_depsgraph(scene=None, view_layer=None):
-    """The evaluated depsgraph of ``scene`` (default: the context's), updates counted."""
-    ctx = bpy.context
-    if scene is None or (scene == ctx.scene and (view_layer is None or view_layer == ctx.view_layer)):
-        return ctx.evaluated_depsgraph_get()
-    vl = view_layer if view_layer is not None else scene.view_layers[0]
-    vl.update()
-    return vl.depsgraph
-
-
-def _non_finite_objects(depsgraph) -> list[tuple[str, int]]:
-    """(object name, vertices with NaN/inf coordinates) of the evaluated meshes."""
-    bad, seen = [], set()
-    for inst in depsgraph.object_instances:
-        ob = inst.object
-        if ob.type != "MESH" or ob.data is None or ob.data.as_pointer() in seen:
-            continue
-        seen.add(ob.data.as_pointer())
-        me = ob.data
-        co = np.empty(len(me.vertices) * 3, np.float32)
-        me.vertices.foreach_get("co", co)
-        n = int((~np.isfinite(co.reshape(-1, 3)).all(axis=1)).sum())
-        if n:
-            bad.append((ob.name, n))
-    return bad
-
-
-def extract(depsgraph, *, selected_only=False, progress=None):
-    """(TriangleMesh, summary dict) of the evaluated scene; NoGeometry or InvalidGeometry
-    with a one-line reason when there is nothing usable."""
-    t0 = time.perf_counter()
-    try:
-        mesh = scene_mesh(depsgraph, selected_only=selected_only, progress=progress)
-    except NoGeometryError as e:
-        raise NoGeometry(f"no geometry: {e}") from None
-    except ValueError as e:
-        bad = _non_finite_objects(depsgraph)
-        if bad:
-            names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5])
-            raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them") from None
-        raise InvalidGeometry(f"invalid geometry: {e}") from None
-    return mesh, scene_summary(depsgraph, mesh, time.perf_counter() - t0)
 
 
 def candidate_kinds(props) -> tuple[tuple[str, ...], list[str]]:
@@ -203,14 +158,15 @@ def analysis_job(scene, job: Job, *, view_layer=None):
     cal, message, path = load_calibration()
     yield 0.02, "extracting the evaluated triangles"
     depsgraph = evaluated_depsgraph(scene, view_layer)
-    gen_at = state.generation(scene)
-    mesh, summary = extract(depsgraph, selected_only=props.selected_only)
+    s = session.get(depsgraph, props)
+    mesh, summary, body = s.mesh, s.summary, s.body
     vl = depsgraph.view_layer
+    grid_config = {"density": float(props.grid_density)}
     yield 0.3, f"building the grid over {mesh.triangle_count:,} triangles and tracing {props.sample_rays:,} sample rays"
     job.fraction, job.text = 0.3, f"grid over {mesh.triangle_count:,} triangles, {props.sample_rays:,} sample rays"
     plan = yield from job.call(
-        core.plan, mesh, expected, cal, samples=props.sample_rays,
-        grid_config={"density": props.grid_density}, kinds=kinds,
+        core.plan, mesh, expected, cal, samples=props.sample_rays, grid=s.cached("grid", **grid_config),
+        grid_config=grid_config, kinds=kinds,
     )
     plan.notes[:0] = notes
     job.check()
@@ -219,8 +175,8 @@ def analysis_job(scene, job: Job, *, view_layer=None):
     record = analysis_record(scene, summary, budget, settings, calibration_info, plan, started=started,
                              duration=time.perf_counter() - t0, embree_ok=core.embree.embree_available())
     yield 1.0, "done"
-    return {"record": record, "mesh": mesh, "plan": plan, "summary": summary, "generation": gen_at,
-            "view_layer": vl, "notes": notes, "calibration": cal}
+    return {"record": record, "mesh": mesh, "plan": plan, "summary": summary, "session": s, "body": body,
+            "grid_config": grid_config, "view_layer": vl, "notes": notes, "calibration": cal}
 
 
 def apply_analysis(scene, result) -> list[tuple[str, str]]:
@@ -228,17 +184,16 @@ def apply_analysis(scene, result) -> list[tuple[str, str]]:
     props = scene.hybrid_raycast
     record = result["record"]
     store_results(props, record)
-    key = (props.selected_only, round(float(props.grid_density), 6))
-    c = state.store(scene, key, result["mesh"], result["summary"], grid=result["plan"].grid,
-                    generation_at=result["generation"])
-    if result["generation"] != state.generation(scene):  # changed while the job ran
+    s = result["session"]
+    s.keep(result["plan"].grid, **result["grid_config"])
+    s.analysis_plan = result["plan"]
+    try:
+        depsgraph = evaluated_depsgraph(scene, result["view_layer"])
+    except ReferenceError:
+        depsgraph = evaluated_depsgraph(scene)
+    session.remember_analysis(depsgraph, props.selected_only, result["body"])
+    if session.fingerprint(depsgraph, props.selected_only)[1] != result["body"]:  # changed while the job ran
         props.geometry_changed = True
-    else:
-        try:
-            state.remember_visibility(scene, result["view_layer"], props.selected_only)
-        except ReferenceError:
-            pass
-    c.plan = result["plan"]
     msgs = []
     cal = record["calibration"]
     if not cal["measured"]:

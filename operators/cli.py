@@ -15,13 +15,16 @@ Commands
     export     one scene file per frame (``--frames 1-250 --output DIR``: DIR/frame_0001.npz, ...)
                for tracing without Blender (``core.load_mesh``, ``core.distributed``);
                a progress line per frame on stderr
+    scan       sensor scans from ``--sensor NAME`` over ``--frames A-B`` into ``--output DIR``,
+               one ``--format ply|las|npz`` file per frame (``operators/scan.py``)
 
 Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-`` for
 stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
 given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``,
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
 NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
-``--save [PATH]``, ``--frames 1-250`` (export).
+``--save [PATH]``, ``--frames 1-250`` (export, scan), ``--sensor NAME``,
+``--format ply|las|npz``, ``--space world|sensor`` (scan).
 
 ``--json -`` puts the JSON, and nothing else, on stdout: while the command runs, file
 descriptor 1 points at stderr, so every message (ours, Blender's own C-level prints such
@@ -70,7 +73,7 @@ from .jobs import BadInput, HRCError, Job, Unwritable, run_sync
 from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
-COMMANDS = ("analyze", "trace", "calibrate", "report", "export")
+COMMANDS = ("analyze", "trace", "calibrate", "report", "export", "scan")
 #: exit codes of the CLI itself; each failure's own code is its HRCError's ``code`` (operators/jobs.py)
 EXIT_OK, EXIT_INTERNAL = 0, 1
 PLOT_PNG = "hybrid_raycast_plot.png"
@@ -129,9 +132,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
     p.add_argument("--calibration", help="the calibration file to read and write")
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="quick", help="calibrate: how much to measure")
+    p.add_argument("--sensor", help="scan: the object to scan from (its hybrid_raycast_sensor settings)")
+    p.add_argument("--format", choices=("ply", "las", "npz"), help="scan: file format (default: the sensor's)")
+    p.add_argument("--space", choices=("world", "sensor"), help="scan: coordinates of the points (default: the sensor's)")
     p.add_argument("--save", nargs="?", const="", metavar="PATH",
                    help="save the .blend afterwards (the AO bake, the results): to PATH, or the loaded file")
-    p.add_argument("--frames", help="export: N, A-B or a list of them, e.g. 1-250 (default: the scene's frame range)")
+    p.add_argument("--frames", help="export: N, A-B or a list of them, e.g. 1-250; scan: A-B or N "
+                   "(default: the scene's frame range)")
     return p
 
 
@@ -421,6 +428,12 @@ def _run(args, stdout, write_json, stderr=None) -> int:
         if args.save is not None:
             raise BadInput("bad arguments: --save: export changes no scene")
         doc = _export(args, out_dir, stdout, stderr or sys.stderr)
+    elif args.command == "scan":
+        from .scan import scan_command
+
+        if args.save is not None:
+            raise BadInput("bad arguments: --save: scan changes no scene (it returns to the current frame)")
+        doc = scan_command(_scene(args), args, out_dir, stdout)
     else:
         scene = _scene(args)
         save_path = _save_target(args)

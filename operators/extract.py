@@ -38,6 +38,13 @@ entries get " #<entry>" appended to keep names unique.
 ``mesh.source_info`` (a ``SourceInfo``) holds, per entry, the instancer, the source,
 the number of instances and of triangles.
 
+Instances: every placement of a mesh is one instance; ``mesh.instance_index`` gives each
+triangle's, and ``mesh.instances`` (an ``InstanceTable``) each instance's world matrix and
+the original object a ray hit on it reports (``scene.ray_cast``'s object: the object itself,
+the instanced object, or a geometry-nodes instancer), filled with the same batched writes as
+the other per-triangle arrays.  Corner normals and UVs are read only when asked
+(``attributes``), since they cost a read per mesh and 60 bytes per triangle.
+
 Not handled: ``hide_render`` on an *intermediate* instancer of nested instances (only the
 top-level instancer and the instanced object itself are checked; the depsgraph's
 iteration does not expose the chain), per-ray visibility (``visible_camera`` ...),
@@ -64,7 +71,7 @@ import numpy as np
 
 from ..core.mesh import TriangleMesh
 
-__all__ = ["NoGeometryError", "SourceInfo", "scene_mesh", "scene_summary", "mesh_triangles"]
+__all__ = ["InstanceTable", "NoGeometryError", "SourceInfo", "scene_mesh", "scene_summary", "mesh_triangles"]
 
 _INT_MAX = 2147483647
 _PROGRESS_EVERY = 0.1  # seconds between progress calls
@@ -101,26 +108,33 @@ def mesh_triangles(me) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     here, and a mesh with a quad on which they disagree or which is too close to call in
     float32 is read from ``loop_triangles`` instead, so the result is always Blender's.
     """
+    return _mesh_triangles(me)[:3]
+
+
+def _mesh_triangles(me):
+    """``mesh_triangles`` plus each triangle's three corners (T,3) int32 (the loop
+    indices, for corner normals and UVs)."""
     nv = len(me.vertices)
     co = np.empty(nv * 3, np.float32)
     me.attributes["position"].data.foreach_get("vector", co)
     co = co.reshape(nv, 3)
     nt = len(me.loop_triangles)
     if nt == 0:
-        return co, np.empty((0, 3), np.int32), np.empty(0, np.int32)
+        return co, np.empty((0, 3), np.int32), np.empty(0, np.int32), np.empty((0, 3), np.int32)
     poly = np.empty(nt, np.int32)
     me.loop_triangle_polygons.foreach_get("value", poly)
     npoly = len(me.polygons)
     # triangles per polygon from the triangle->polygon map; a polygon of n corners has n-2
     per_poly = np.bincount(poly, minlength=npoly)
-    tris = None
+    got = None
     if per_poly.size and per_poly.max() <= 2 and per_poly.min() >= 1 and ".corner_vert" in me.attributes:
-        tris = _tris_and_quads(me, co, poly, per_poly)
-    if tris is None:  # n-gons, or a quad too close to call
+        got = _tris_and_quads(me, co, poly, per_poly, corners=True)
+    if got is None:  # n-gons, or a quad too close to call
         loops = np.empty(nt * 3, np.int32)
         me.loop_triangles.foreach_get("loops", loops)
-        tris = _corner_verts(me)[loops].reshape(nt, 3)
-    return co, tris, poly
+        loops = loops.reshape(nt, 3)
+        got = _corner_verts(me)[loops], loops
+    return co, got[0], poly, got[1]
 
 
 def _corner_verts(me) -> np.ndarray:
@@ -133,9 +147,10 @@ def _corner_verts(me) -> np.ndarray:
     return cv
 
 
-def _tris_and_quads(me, co, poly, per_poly):
+def _tris_and_quads(me, co, poly, per_poly, corners=False):
     """Blender's loop triangles of a mesh with only triangles and quads, in numpy;
-    None when a quad's split cannot be decided for certain."""
+    None when a quad's split cannot be decided for certain.  With ``corners``:
+    (triangles, their corners)."""
     cv = _corner_verts(me)
     start = np.zeros(len(per_poly), np.int32)
     np.cumsum(per_poly[:-1] + 2, out=start[1:])  # first corner of each polygon
@@ -158,7 +173,8 @@ def _tris_and_quads(me, co, poly, per_poly):
             qa = qa[flip]
             loops[qa] = s[qa, None] + _QUAD_FLIPPED[0]
             loops[qa + 1] = s[qa, None] + _QUAD_FLIPPED[1]
-    return np.take(cv, loops)
+    tris = np.take(cv, loops)
+    return (tris, loops) if corners else tris
 
 
 # Blender's other split of a quad, when the 0-2 diagonal lies outside: (0, 1, 3), (1, 2, 3)
@@ -236,13 +252,51 @@ def _render_enabled_objects(view_layer) -> set:
     return keep
 
 
+@dataclass
+class InstanceTable:
+    """Per placement (instance) of the extraction, and the objects a ray can hit.
+
+    objects: the hit-able original ``bpy.types.Object``s, each once: an object's own
+        geometry gives the object, an instanced object (collection, vertex/face, particle
+        instancing) the instanced object, geometry-nodes instances their instancer, as
+        ``scene.ray_cast`` reports them.
+    entry_object: (entries,) int32, per entry of ``object_names`` its index in ``objects``.
+    matrices: (I, 4, 4) float64 world matrices (row-major, like ``matrix_world``).
+    instance_object: (I,) int32 index into ``objects``.
+    corner_normals: (T, 3, 3) float32 world-space corner normals of each triangle, and
+    corner_uvs: (T, 3, 2) float32 active-UV-map coordinates (NaN without one), when asked.
+    """
+
+    objects: list
+    entry_object: np.ndarray
+    matrices: np.ndarray
+    instance_object: np.ndarray
+    corner_normals: np.ndarray | None = None
+    corner_uvs: np.ndarray | None = None
+
+
 class _Group:
     """One evaluated mesh and every placement of it (positions in the instance iteration)."""
 
-    __slots__ = ("co", "tris", "poly", "where", "entries", "matrices")
+    __slots__ = ("co", "tris", "poly", "where", "entries", "matrices", "normals", "uvs")
 
-    def __init__(self, co, tris, poly):
+    def __init__(self, co, tris, poly, corners, me=None, attributes=()):
         self.co, self.tris, self.poly = co, tris, poly
+        # per triangle corner: normals (T,3,3) and UVs (T,3,2) read now (the mesh of a
+        # geometry-nodes instance lives only during its iteration step), only when asked
+        self.normals = self.uvs = None
+        if "normal" in attributes and len(tris):
+            n = np.empty(len(me.loops) * 3, np.float32)
+            me.corner_normals.foreach_get("vector", n)
+            self.normals = n.reshape(-1, 3)[corners]
+        if "uv" in attributes and len(tris):
+            layer = me.uv_layers.active
+            if layer is not None:
+                uv = np.empty(len(me.loops) * 2, np.float32)
+                layer.data.foreach_get("uv", uv)
+                self.uvs = uv.reshape(-1, 2)[corners]
+            else:
+                self.uvs = np.full((len(tris), 3, 2), np.nan, np.float32)
         self.where = []  # index of each placement in depsgraph.object_instances
         self.entries = []  # its entry in object_names
         self.matrices = None  # (k, 4, 4) float32, column-major rows: m[:, :3, :3] is R^T
@@ -250,19 +304,26 @@ class _Group:
 
 # -- extraction ------------------------------------------------------------------------
 
-def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progress=None) -> TriangleMesh:
+def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progress=None,
+               attributes=()) -> TriangleMesh:
     """World-space triangles of what the depsgraph's scene renders (see module doc).
+
+    The mesh carries ``instance_index`` (per triangle, its placement) and
+    ``mesh.instances`` (an ``InstanceTable``: the objects and the placements' matrices).
 
     depsgraph: an evaluated depsgraph (``context.evaluated_depsgraph_get()``).
     selected_only: only selected objects, and instances whose instancer is selected.
     view_layer: for visibility and selection; the depsgraph's view layer by default.
     progress: called with a fraction 0..1 now and then (at most every 0.1 s), and with 1.0
         at the end.
+    attributes: also read 'normal' (corner normals) and/or 'uv' (the active UV map) of
+        every triangle corner into ``mesh.instances`` (costs a read per mesh and memory).
     Raises NoGeometryError when nothing visible has a triangle.
     """
     t0 = time.perf_counter()
     vl = view_layer if view_layer is not None else depsgraph.view_layer
-    groups, names, info = _collect(depsgraph, vl, selected_only, progress)
+    attributes = tuple(attributes)
+    groups, names, info, entry_obj = _collect(depsgraph, vl, selected_only, progress, attributes)
     if not groups:
         scene = depsgraph.scene.name
         if not len(depsgraph.scene.objects):
@@ -271,7 +332,7 @@ def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progr
         raise NoGeometryError(
             f"no {what}visible, render-enabled object in scene '{scene}' (view layer '{vl.name}') has triangles"
         )
-    mesh = _assemble(groups, names, progress)
+    mesh = _assemble(groups, names, progress, entry_obj, attributes)
     info.seconds = time.perf_counter() - t0
     mesh.source_info = info
     if progress is not None:
@@ -279,7 +340,7 @@ def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progr
     return mesh
 
 
-def _collect(depsgraph, vl, selected_only, progress):
+def _collect(depsgraph, vl, selected_only, progress, attributes=()):
     """Walk ``object_instances`` once: decide per (instancer, source, mesh), read each kept
     mesh once, note where each placement is; then fetch all matrices in one foreach_get."""
     render_ok = _render_enabled_objects(vl)
@@ -290,6 +351,7 @@ def _collect(depsgraph, vl, selected_only, progress):
     groups: dict[int, _Group] = {}  # evaluated mesh pointer -> group
     entry_of: dict[tuple, int] = {}  # (root, source kind, source, mesh) pointers -> entry
     names: list[str] = []
+    entry_obj: list = []  # per entry, the original object a ray hit reports
     taken: set[str] = set()
     info = SourceInfo()
     seen_roots = 0
@@ -321,23 +383,27 @@ def _collect(depsgraph, vl, selected_only, progress):
                 # the mesh too: an instanced object can bring several (its own, its GN instances)
                 key = (root.as_pointer(), "object", src_orig.as_pointer(), me.as_pointer())
                 label = (root.name, src_orig.name)
+                hit_ob = src_orig
             elif inst.persistent_id[1] == _INT_MAX:  # the object's own geometry (curve, text...)
                 key, label = (root.as_pointer(), "self", 0, me.as_pointer()), (None, None)
+                hit_ob = root
             else:  # geometry-nodes instances: named by the mesh datablock
                 key = (root.as_pointer(), "mesh", 0, me.as_pointer())
                 label = (root.name, me.name)
+                hit_ob = root
         else:
             root = ob.original
             if not root_kept(root) or (root.is_instancer and not root.show_instancer_for_render):
                 return None
             key, label = (root.as_pointer(), "self", 0, me.as_pointer()), (None, None)
+            hit_ob = root
         if not len(me.loop_triangles):
             return None
         # The depsgraph owns its evaluated meshes while we iterate and we create no
         # temporaries (no to_mesh), so a mesh pointer names one mesh for the whole walk.
         group = groups.get(me.as_pointer())
         if group is None:
-            group = groups[me.as_pointer()] = _Group(*mesh_triangles(me))
+            group = groups[me.as_pointer()] = _Group(*_mesh_triangles(me), me=me, attributes=attributes)
         entry = entry_of.get(key)
         if entry is None:
             entry = entry_of[key] = len(names)
@@ -345,6 +411,7 @@ def _collect(depsgraph, vl, selected_only, progress):
             if name in taken:  # two sources with one name (e.g. two meshes named "Mesh")
                 name = f"{name} #{entry}"
             names.append(name)
+            entry_obj.append(hit_ob)
             taken.add(name)
             info.instancer.append(label[0])
             info.source.append(label[1])
@@ -402,6 +469,7 @@ def _collect(depsgraph, vl, selected_only, progress):
         for g in kept:
             g.entries = remap[np.asarray(g.entries, np.int64)].tolist()
         names = [names[i] for i in live]
+        entry_obj = [entry_obj[i] for i in live]
         info.instancer = [info.instancer[i] for i in live]
         info.source = [info.source[i] for i in live]
         roots_of = [k[0] for k, e in sorted(entry_of.items(), key=lambda kv: kv[1])]
@@ -414,7 +482,7 @@ def _collect(depsgraph, vl, selected_only, progress):
     info.meshes_read = len(groups)
     if progress is not None:
         progress(0.5)
-    return kept, names, info
+    return kept, names, info, entry_obj
 
 
 def _fetch_matrices(depsgraph, count, groups):
@@ -435,17 +503,23 @@ def _fetch_matrices(depsgraph, count, groups):
         g.matrices = flat[g.where]
 
 
-def _assemble(groups, names, progress=None) -> TriangleMesh:
+def _assemble(groups, names, progress=None, entry_obj=None, attributes=()) -> TriangleMesh:
     """Transform every group by all its matrices at once and concatenate."""
     nv = sum(len(g.co) * len(g.where) for g in groups)
     nt = sum(len(g.tris) * len(g.where) for g in groups)
+    ni = sum(len(g.where) for g in groups)
     if nv > np.iinfo(np.int32).max:
         raise ValueError(f"the scene has {nv} vertices, more than int32 triangle indices can address")
     vertices = np.empty((nv, 3), np.float32)
     triangles = np.empty((nt, 3), np.int32)
     object_index = np.empty(nt, np.int32)
     polygon_index = np.empty(nt, np.int32)
-    v0 = f0 = 0
+    instance_index = np.empty(nt, np.int32)
+    matrices = np.empty((ni, 4, 4), np.float64)
+    instance_entry = np.empty(ni, np.int32)
+    normals = np.empty((nt, 3, 3), np.float32) if "normal" in attributes else None
+    uvs = np.empty((nt, 3, 2), np.float32) if "uv" in attributes else None
+    v0 = f0 = i0 = 0
     next_report = time.perf_counter() + _PROGRESS_EVERY
     for g in groups:
         k, V, T = len(g.where), len(g.co), len(g.tris)
@@ -461,12 +535,38 @@ def _assemble(groups, names, progress=None) -> TriangleMesh:
             out_t[neg] = out_t[neg][:, :, [0, 2, 1]]
         object_index[f0:f0 + k * T].reshape(k, T)[:] = np.asarray(g.entries, np.int32)[:, None]
         polygon_index[f0:f0 + k * T].reshape(k, T)[:] = g.poly
+        instance_index[f0:f0 + k * T].reshape(k, T)[:] = np.arange(i0, i0 + k, dtype=np.int32)[:, None]
+        matrices[i0:i0 + k] = m.transpose(0, 2, 1)
+        instance_entry[i0:i0 + k] = g.entries
+        if normals is not None:
+            out_n = normals[f0:f0 + k * T].reshape(k, T, 3, 3)
+            # normals transform by the inverse transpose: n_world = n @ R^-1 = n @ inv(m)^T
+            inv_t = np.linalg.inv(m[:, :3, :3].astype(np.float64)).transpose(0, 2, 1).astype(np.float32)
+            np.matmul(g.normals[None].reshape(1, T * 3, 3), inv_t, out=out_n.reshape(k, T * 3, 3))
+            out_n /= np.maximum(np.linalg.norm(out_n, axis=-1, keepdims=True), np.float32(1e-30))
+            if neg.any():
+                out_n[neg] = out_n[neg][:, :, [0, 2, 1]]
+        if uvs is not None:
+            out_uv = uvs[f0:f0 + k * T].reshape(k, T, 3, 2)
+            out_uv[:] = g.uvs
+            if neg.any():
+                out_uv[neg] = out_uv[neg][:, :, [0, 2, 1]]
         v0 += k * V
         f0 += k * T
+        i0 += k
         if progress is not None and time.perf_counter() >= next_report:
             progress(0.5 + 0.5 * f0 / nt)
             next_report = time.perf_counter() + _PROGRESS_EVERY
-    return TriangleMesh(vertices, triangles, object_index, polygon_index, names)
+    mesh = TriangleMesh(vertices, triangles, object_index, polygon_index, names, instance_index=instance_index)
+    objects, slot, entry_object = [], {}, np.empty(len(names), np.int32)
+    for e, ob in enumerate(entry_obj if entry_obj is not None else [None] * len(names)):
+        key = ob.as_pointer() if ob is not None else -1 - e
+        if key not in slot:
+            slot[key] = len(objects)
+            objects.append(ob)
+        entry_object[e] = slot[key]
+    mesh.instances = InstanceTable(objects, entry_object, matrices, entry_object[instance_entry], normals, uvs)
+    return mesh
 
 
 # -- summary ----------------------------------------------------------------------------

@@ -39,7 +39,6 @@ import bpy
 import numpy as np
 
 from .. import core
-from . import state
 from .jobs import BadInput, NothingToTrace
 
 DEPTH, NORMAL, OBJECT_ID = "HRC Depth", "HRC Normal", "HRC Object ID"
@@ -265,21 +264,16 @@ def write_ao(ob, occluded: np.ndarray, samples: int, attribute: str):
     rgba = np.empty((len(ao), 4), np.float32)
     rgba[:, :3] = ao[:, None]
     rgba[:, 3] = 1.0
-    state.OWN_UPDATES.update({ob.as_pointer(), me.as_pointer()})
-    try:
-        attr = me.color_attributes.get(attribute)
-        if attr is not None and (attr.data_type != "FLOAT_COLOR" or attr.domain != "POINT"):
-            me.color_attributes.remove(attr)
-            attr = None
-        if attr is None:
-            other = me.attributes.get(attribute)
-            if other is not None:
-                me.attributes.remove(other)
-            attr = me.color_attributes.new(attribute, "FLOAT_COLOR", "POINT")
-        attr.data.foreach_set("color", rgba.ravel())
-        me.color_attributes.active_color = attr
-        me.update()
-        bpy.context.evaluated_depsgraph_get()  # count our own update now, while it is excluded
-    finally:
-        state.OWN_UPDATES.difference_update({ob.as_pointer(), me.as_pointer()})
+    attr = me.color_attributes.get(attribute)
+    if attr is not None and (attr.data_type != "FLOAT_COLOR" or attr.domain != "POINT"):
+        me.color_attributes.remove(attr)
+        attr = None
+    if attr is None:
+        other = me.attributes.get(attribute)
+        if other is not None:
+            me.attributes.remove(other)
+        attr = me.color_attributes.new(attribute, "FLOAT_COLOR", "POINT")
+    attr.data.foreach_set("color", rgba.ravel())
+    me.color_attributes.active_color = attr
+    me.update()
     return attr, ao

@@ -5,7 +5,7 @@ object-id images of ``passes``) and 'AO' (an ambient-occlusion bake of the activ
 into a colour attribute).  The ray count of a trace is known, so the trace decides for
 *its own* rays: ``core.plan`` with the workload's ray count, timing K of the workload's
 own rays through the grid (the paper's representative rays).  The triangles, the grid
-and every structure built are cached while the scene is unchanged (``state``), so a
+and every structure built are kept in the session while its fingerprint is unchanged (``session``), so a
 second trace, or one after Analyze, extracts and builds nothing it has already built.
 """
 
@@ -17,8 +17,9 @@ import bpy
 import numpy as np
 
 from .. import core
-from . import passes, state
-from .analyze import candidate_kinds, evaluated_depsgraph, extract
+from . import passes, session
+from .analyze import candidate_kinds
+from .session import evaluated as evaluated_depsgraph
 from .calibrate import load_calibration
 from .jobs import BadInput, Job, JobOperator
 
@@ -63,12 +64,6 @@ def _trace_all(job, acc, rays, any_hit, plan=None):
     return out, time.perf_counter() - t0, traced
 
 
-def prepared_scene(scene, props, depsgraph):
-    """(cache or None, key): the cached extraction when the scene is unchanged."""
-    key = (props.selected_only, round(float(props.grid_density), 6))
-    return state.cached(scene, key), key
-
-
 def trace_job(scene, job: Job, *, workload="CAMERA", view_layer=None, target=None, seed=0):
     """Generator: rays for the workload, plan for their count, build (or reuse), trace."""
     workload = str(workload).upper()
@@ -85,14 +80,11 @@ def trace_job(scene, job: Job, *, workload="CAMERA", view_layer=None, target=Non
         ob = None
     else:
         ob = passes.ao_target(scene, vl, target)
-    gen_at = state.generation(scene)
-    cache, key = prepared_scene(scene, props, depsgraph)
-    if cache is None:
-        yield 0.05, "extracting the evaluated triangles"
-        mesh, summary = extract(depsgraph, selected_only=props.selected_only)
-        grid = None
-    else:
-        mesh, summary, grid = cache.mesh, cache.summary, cache.grid
+    yield 0.05, "extracting the evaluated triangles"
+    s = session.get(depsgraph, props)
+    before = s.fingerprint
+    grid_config = {"density": float(props.grid_density)}
+    mesh, summary, grid = s.mesh, s.summary, s.cached("grid", **grid_config)
     if workload == "AO":
         lo, hi = mesh.bounds()
         rays = passes.ao_workload(ob, depsgraph, props.ao_samples, props.ao_distance,
@@ -103,26 +95,27 @@ def trace_job(scene, job: Job, *, workload="CAMERA", view_layer=None, target=Non
     job.fraction, job.text = 0.1, f"planning for {m:,} rays"
     plan = yield from job.call(
         core.plan, mesh, m, cal, rays=(rays["origins"], rays["directions"], rays["tmin"], rays["tmax"]),
-        samples=props.sample_rays, grid=grid, grid_config={"density": props.grid_density}, kinds=kinds,
+        samples=props.sample_rays, grid=grid, grid_config=grid_config, kinds=kinds,
     )
+    s.keep(plan.grid, **grid_config)
     grid_build = 0.0 if grid is not None else plan.grid_build_time
     kind = plan.chosen
-    structures = dict(cache.structures) if cache is not None else {}
+    config = plan.configs.get(kind, {})
     if kind == "grid":
         acc, build_time = plan.grid, grid_build
-    elif kind in structures:
-        acc, build_time = structures[kind], 0.0
+    elif s.cached(kind, **config) is not None:
+        acc, build_time = s.cached(kind, **config), 0.0
     else:
         job.fraction, job.text = 0.3, f"building the {kind} over {mesh.triangle_count:,} triangles"
-        acc = yield from job.call(core.build, mesh, kind, **plan.configs.get(kind, {}))
+        acc = yield from job.call(core.build, mesh, kind, **config)
         build_time = acc.build_time
-        structures[kind] = acc
+        s.keep(acc, **config)
     job.fraction = 0.5
     out, trace_time, traced = yield from job.call(_trace_all, job, acc, rays, workload == "AO", plan)
     job.check()
     return {"workload": workload, "rays": rays, "result": out, "plan": plan, "mesh": mesh, "summary": summary,
-            "structure": kind, "build_time": build_time, "trace_time": trace_time, "traced": traced, "key": key,
-            "generation": gen_at, "grid": plan.grid, "structures": structures, "object": ob,
+            "structure": kind, "build_time": build_time, "trace_time": trace_time, "traced": traced,
+            "before": before, "view_layer": vl, "object": ob,
             "notes": notes, "calibration_measured": cal.source == "measured", "calibration_message": cal_message}
 
 
@@ -142,12 +135,8 @@ def apply_trace(scene, result) -> list[tuple[str, str]]:
         output = f"{ob.name}: {attr.name}"
         what = f"AO rays ({rays['vertices']:,} vertices x {rays['samples']} samples)"
         tail = f"; mean AO {float(ao.mean()):.2f} in attribute '{attr.name}' of '{ob.name}'"
-    c = state.cached(scene, result["key"])
-    if c is None or c.mesh is not result["mesh"]:
-        c = state.store(scene, result["key"], result["mesh"], result["summary"], grid=result["grid"],
-                        generation_at=result["generation"])
-    c.grid = c.grid or result["grid"]
-    c.structures.update(result["structures"])
+        # our own write: the colour attribute changes no triangle
+        session.adopt_own_write(scene, result["view_layer"], result["before"])
     props.trace_workload = result["workload"]
     props.trace_structure = result["structure"].upper()
     props.trace_rays = m

@@ -91,7 +91,7 @@ def median_cpu(f, runs):
 def breakdown(depsgraph, runs):
     """Where a warm run spends its time (medians), and two slower ways to read triangles."""
     vl = depsgraph.view_layer
-    groups, names, _ = extract._collect(depsgraph, vl, False, None)
+    groups, names, _, _ = extract._collect(depsgraph, vl, False, None)
     meshes = {}
     for inst in depsgraph.object_instances:
         if inst.object.type == "MESH":

@@ -114,8 +114,21 @@ for frame in (1, 2):
 code, out, err, p = blender(None, "calibrate", "--scale", "tiny", "--calibration", str(WORK / "cli_cal.json"))
 check("calibrate exits 0 and writes the file", code == 0 and (WORK / "cli_cal.json").is_file(), f"rc={code} {err}")
 
+# sensor scans (issue 13): the text object lying on the ground as a rotating LiDAR (the default
+# VLP-16 settings): its upper lasers see Suzanne and the ring of instances; LAS files
+scan_dir = WORK / "cli_out" / "scan"
+code, out, err, p = blender("demo.blend", "scan", "--sensor", "Title", "--frames", "1-2", "--output", str(scan_dir),
+                            "--format", "las")
+check("scan exits 0", code == 0, f"rc={code} {err} {p.stderr[-500:]}")
+las = sorted(scan_dir.glob("Title_*.las"))
+points = [int.from_bytes(f.read_bytes()[247:255], "little") for f in las]  # LAS 1.4 header: number of point records
+check("scan wrote one LAS 1.4 file per frame with points", [f.name for f in las] == ["Title_00001.las", "Title_00002.las"]
+      and all(f.read_bytes()[:4] == b"LASF" for f in las) and all(n > 500 for n in points), f"{las} {points}")
+
 (WORK / "notes.txt").write_text("not a .blend file\n")
 for name, blend, args, want, words in (
+    ("scan outside the frame range", "demo.blend", ["scan", "--sensor", "Title", "--frames", "1-999999",
+                                                    "--output", str(scan_dir)], 2, "outside the scene's frame range"),
     ("bad arguments", "demo.blend", ["analyze", "--rays", "0"], 2, "greater than 0"),
     ("infinite rays", "demo.blend", ["analyze", "--rays", "inf"], 2, "finite"),
     ("a missing file", "missing.blend", ["analyze"], 2, "no such file"),

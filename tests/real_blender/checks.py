@@ -131,6 +131,139 @@ for i in range(40):
         agree += 1
 check("api.cast agrees with Scene.ray_cast", agree == 40, f"{agree}/40 rays, structure {r.structure}")
 
+# -- the session is never stale: every field of api.cast equals Scene.ray_cast after each change ----
+def ring_rays(seed, m=200):
+    g = np.random.default_rng(seed)
+    a = g.uniform(0, 2 * np.pi, m)
+    o = np.stack([9 * np.cos(a), 9 * np.sin(a), g.uniform(-0.8, 2.5, m)], axis=1)
+    tgt = np.stack([g.uniform(-3, 3, m), g.uniform(-3, 3, m), g.uniform(-1.2, 1.5, m)], axis=1)
+    return o, tgt - o
+
+
+def like_ray_cast(name, seed, depsgraph=None):
+    o, d = ring_rays(seed)
+    r = pkg.api.cast(o, d, depsgraph=depsgraph)  # the API first, as a script does
+    g = depsgraph if depsgraph is not None else bpy.context.evaluated_depsgraph_get()
+    bad = []
+    for i in range(len(o)):
+        ok, loc, n, face, ob, mat = g.scene.ray_cast(g, Vector(o[i]), Vector(d[i]))
+        if ok != bool(r.hit[i]):
+            bad.append((i, "hit", ok))
+            continue
+        if not ok:
+            continue
+        same_point = np.allclose(r.points[i], loc[:], atol=2e-4)
+        fields = (np.allclose(r.normals[i], n[:], atol=2e-5) and r.polygon_index[i] == face
+                  and r.objects[r.object_index[i]] == ob.original
+                  and np.allclose(r.instance_matrices[r.instance_index[i]], np.array(mat), atol=1e-5))
+        if not same_point or not (fields or np.linalg.norm(np.asarray(loc) - r.points[i]) < 1e-5):
+            bad.append((i, ob.name, r.object_names[r.object_index[i]]))
+    check(f"api.cast == Scene.ray_cast, every field: {name}", not bad, f"{len(bad)}/{len(o)} differ {bad[:3]}")
+    return r
+
+
+def hit_names(r):
+    return set(r.object_names[r.object_index[r.hit]])
+
+
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable(MODULE, default_set=True)
+scene = bpy.context.scene
+vl = bpy.context.view_layer
+bpy.ops.mesh.primitive_plane_add(size=12, location=(0, 0, -1))
+bpy.ops.mesh.primitive_cube_add(size=1.5, location=(1.5, 0, 0))
+cube = bpy.context.object
+col = bpy.data.collections.new("Col")
+scene.collection.children.link(col)
+bpy.ops.mesh.primitive_uv_sphere_add(radius=0.6, location=(-1.5, 1.0, 0.3))
+ball = bpy.context.object
+for c in list(ball.users_collection):
+    c.objects.unlink(ball)
+col.objects.link(ball)
+bpy.ops.mesh.primitive_cone_add(radius1=0.4, depth=0.8)
+cone = bpy.context.object
+src = bpy.data.collections.new("Src")
+scene.collection.objects.unlink(cone)
+src.objects.link(cone)
+for i, x in enumerate((-2.5, 2.5)):
+    e = bpy.data.objects.new(f"Inst{i}", None)
+    e.instance_type, e.instance_collection = "COLLECTION", src
+    e.location, e.rotation_euler = (x, -2.0, 0.0), (0.0, 0.0, 0.3 * (i + 1))
+    scene.collection.objects.link(e)
+vl.update()
+like_ray_cast("first cast", 0)
+cube.location.x += 0.7
+like_ray_cast("object moved", 1)
+mod = cube.modifiers.new("Bevel", "BEVEL")
+mod.width = 0.1
+like_ray_cast("modifier added", 2)
+mod.width = 0.3
+like_ray_cast("modifier changed", 3)
+ball.hide_set(True)
+check("hide_set(True) hides the ball", "Sphere" not in hit_names(like_ray_cast("hide_set(True)", 4)))
+ball.hide_set(False)
+check("hide_set(False) shows the ball", "Sphere" in hit_names(like_ray_cast("hide_set(False)", 4)))
+lc = vl.layer_collection.children["Col"]
+lc.hide_viewport = True
+check("eye icon hides the ball", "Sphere" not in hit_names(like_ray_cast("collection eye icon off", 5)))
+lc.hide_viewport = False
+lc.exclude = True
+check("exclude hides the ball", "Sphere" not in hit_names(like_ray_cast("collection excluded", 5)))
+lc.exclude = False
+like_ray_cast("collection back", 6)
+bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0, 2.5, 0))
+extra = bpy.context.object
+extra.name = "Extra"
+check("an added object is hit", "Extra" in hit_names(like_ray_cast("object added", 7)))
+bpy.data.objects.remove(extra)
+check("a removed object is not", "Extra" not in hit_names(like_ray_cast("object removed", 7)))
+other = scene.view_layers.new("Other")
+other.layer_collection.children["Col"].exclude = True
+other.update()
+check("another view layer's depsgraph has its own geometry",
+      "Sphere" not in hit_names(like_ray_cast("other view layer", 8, depsgraph=other.depsgraph)))
+like_ray_cast("first view layer again", 8)
+cube.keyframe_insert("location", frame=1)
+cube.location.z += 1.0
+cube.keyframe_insert("location", frame=10)
+scene.frame_set(1)
+like_ray_cast("frame 1", 9)
+scene.frame_set(10)
+like_ray_cast("frame_set(10)", 9)
+early_failures = []
+
+
+def early_handler(scene, depsgraph):
+    try:
+        like_ray_cast(f"frame_change_post handler before ours, frame {scene.frame_current}", 10, depsgraph=depsgraph)
+    except SystemExit as e:
+        early_failures.append(str(e))
+
+
+bpy.app.handlers.frame_change_post.insert(0, early_handler)
+scene.frame_set(1)
+scene.frame_set(10)
+bpy.app.handlers.frame_change_post.remove(early_handler)
+check("a handler registered before ours sees the current frame", not early_failures, str(early_failures[:1]))
+at = cube.matrix_world.translation
+r = pkg.api.cast((at.x, at.y - 9.0, at.z), (0, 1, 0))
+check("a single ray as tuples", len(r) == 1 and bool(r.hit[0]), str(r.t))
+occ = pkg.api.occluded(*ring_rays(11), structure="bvh")
+check("occluded is any hit", np.array_equal(occ, pkg.api.cast(*ring_rays(11), structure="bvh").hit))
+allh = pkg.api.cast_all(*ring_rays(12), max_hits=8)
+near = pkg.api.cast(*ring_rays(12))
+check("cast_all sorted by ray then t, every hit ray in it",
+      np.all(np.diff(allh.ray) >= 0) and np.array_equal(np.unique(allh.ray), np.flatnonzero(near.hit))
+      and len(allh) >= near.hit.sum(), f"{len(allh)} hits on {near.hit.sum()} rays")
+for bad_call, word in ((lambda: pkg.api.cast([[0, 0, 0j]], [[0, 1, 0]]), "origins"),
+                       (lambda: pkg.api.cast([[0, 0, 0]], [[0, 1, 0]], samples=0), "samples"),
+                       (lambda: pkg.api.cast([[0, 0, 0]], [[0, 1, 0]], depsgraph=scene), "depsgraph")):
+    try:
+        bad_call()
+        check(f"bad {word} raises", False)
+    except (TypeError, ValueError) as e:
+        check(f"bad {word} raises a clear error", word in str(e), str(e))
+
 # -- failures say why ---------------------------------------------------------------------------
 bpy.ops.wm.read_factory_settings(use_empty=True)
 addon_utils.enable(MODULE, default_set=True)

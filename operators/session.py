@@ -1,0 +1,407 @@
+"""The session: one home for what the add-on keeps between calls, and when it is still right.
+
+``get(depsgraph, settings)`` returns the ``Session`` of the depsgraph's scene and view
+layer: the extracted triangles (``operators/extract.py``), the structures built over them,
+the plan of the first cast and the grid's running totals for the online rule.  ``api``,
+the Trace operator and the Analyze operator all go through it.
+
+Right by construction: a session is reused only while its *fingerprint* is equal to the
+fingerprint of the depsgraph asked about, computed at every ``get``.  No update handler
+decides what is current, so handler order or a missed update cannot serve old triangles.
+The fingerprint is:
+- head: the scene, the view layer, the depsgraph mode, the frame (and subframe), the
+  selected-only setting;
+- body: per evaluated object of ``depsgraph.ids`` that can bring triangles (not cameras,
+  lights, probes, speakers, armatures; instanced-only objects included): its original,
+  name, type, the ``session_uid`` of its evaluated data (Blender gives an evaluated mesh a
+  new one every time it is evaluated again: an edit, a modifier, geometry nodes, a
+  driver; checked with bpy 5.0.1), its world matrix, visibility in the view layer,
+  ``hide_render``, selection (with selected-only), ``show_instancer_for_render`` and its
+  instancing; and per layer collection its exclude, viewport and render flags.
+Geometry-nodes and particle instances are not listed one by one: they are part of their
+instancer's evaluation, whose data gets a new ``session_uid`` when they change.  Its cost
+is a few microseconds per object, whatever the number of instances (BENCHMARKS.md).
+
+The sidebar's stale flag uses the same fingerprint: the analysis remembers the body it
+was made on, and ``on_depsgraph_update`` (on ``depsgraph_update_post`` and
+``frame_change_post``) compares
+the current one, setting ``scene.hybrid_raycast.geometry_changed``.  The frame is left
+out of that comparison (a frame change that moves nothing leaves the analysis right);
+the add-on's own writes (the AO bake's colour attribute) are adopted by
+``adopt_own_write``.  Loading a file clears every session.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import bpy
+import numpy as np
+from bpy.app.handlers import persistent
+
+from .. import core
+from .extract import NoGeometryError, scene_mesh, scene_summary
+from .jobs import InvalidGeometry, NoGeometry
+
+#: (scene pointer, view layer pointer, selected_only) -> Session
+SESSIONS: dict[tuple, "Session"] = {}
+#: scene pointer -> (view layer pointer, selected_only, body) of the analysis shown in the sidebar
+ANALYSED: dict[int, tuple] = {}
+
+# looked up once: an attribute of bpy.types costs tens of microseconds per access
+_DEPSGRAPH = bpy.types.Depsgraph
+_OBJECT = bpy.types.Object
+_NOT_GEOMETRY = frozenset({"CAMERA", "LIGHT", "LIGHT_PROBE", "LIGHTPROBE", "SPEAKER", "ARMATURE"})
+_adopting = False
+
+
+# -- the fingerprint ---------------------------------------------------------------------
+
+def _layer_flags(vl) -> tuple:
+    out, stack = [], [vl.layer_collection]
+    while stack:
+        lc = stack.pop()
+        out.append((lc.collection.as_pointer(), lc.exclude, lc.hide_viewport, lc.collection.hide_render,
+                    lc.collection.hide_viewport))
+        stack.extend(lc.children)
+    return tuple(out)
+
+
+def fingerprint(depsgraph, selected_only: bool = False) -> tuple[tuple, tuple]:
+    """(head, body) of what the extraction of ``depsgraph`` depends on (module doc)."""
+    scene, vl = depsgraph.scene, depsgraph.view_layer
+    head = (scene.as_pointer(), vl.as_pointer(), depsgraph.mode, scene.frame_current,
+            float(scene.frame_subframe), bool(selected_only))
+    body = [_layer_flags(vl)]
+    for idb in depsgraph.ids:
+        if not isinstance(idb, _OBJECT) or idb.type in _NOT_GEOMETRY:
+            continue
+        orig = idb.original
+        data = idb.data
+        try:
+            visible = orig.visible_get(view_layer=vl)
+            selected = orig.select_get(view_layer=vl) if selected_only else False
+        except RuntimeError:  # not in this view layer: only instanced
+            visible = selected = None
+        coll = idb.instance_collection
+        body.append((orig.as_pointer(), orig.name, idb.type, data.session_uid if data is not None else 0,
+                     idb.matrix_world.copy(), visible, selected, orig.hide_render, orig.show_instancer_for_render,
+                     idb.instance_type, coll.as_pointer() if coll is not None else 0))
+    return head, tuple(body)
+
+
+def check_depsgraph(depsgraph, name="depsgraph"):
+    if not isinstance(depsgraph, _DEPSGRAPH):
+        raise TypeError(f"{name} must be a bpy.types.Depsgraph (e.g. context.evaluated_depsgraph_get()), "
+                        f"got {type(depsgraph).__name__}")
+    return depsgraph
+
+
+# -- extraction with one-line errors -------------------------------------------------------
+
+def _non_finite_objects(depsgraph) -> list[tuple[str, int]]:
+    """(object name, vertices with NaN/inf coordinates) of the evaluated meshes."""
+    bad, seen = [], set()
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        if ob.type != "MESH" or ob.data is None or ob.data.as_pointer() in seen:
+            continue
+        seen.add(ob.data.as_pointer())
+        me = ob.data
+        co = np.empty(len(me.vertices) * 3, np.float32)
+        me.vertices.foreach_get("co", co)
+        n = int((~np.isfinite(co.reshape(-1, 3)).all(axis=1)).sum())
+        if n:
+            bad.append((ob.name, n))
+    return bad
+
+
+def extract(depsgraph, *, selected_only=False, progress=None, attributes=()):
+    """(TriangleMesh, summary dict) of the evaluated scene; NoGeometry or InvalidGeometry
+    with a one-line reason when there is nothing usable."""
+    t0 = time.perf_counter()
+    try:
+        mesh = scene_mesh(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes)
+    except NoGeometryError as e:
+        raise NoGeometry(f"no geometry: {e}") from None
+    except ValueError as e:
+        bad = _non_finite_objects(depsgraph)
+        if bad:
+            names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5])
+            raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them") from None
+        raise InvalidGeometry(f"invalid geometry: {e}") from None
+    return mesh, scene_summary(depsgraph, mesh, time.perf_counter() - t0)
+
+
+# -- the session ---------------------------------------------------------------------------
+
+@dataclass(eq=False)
+class Session:
+    """One scene + view layer's extraction, its structures and its running totals."""
+
+    key: tuple
+    head: tuple
+    body: tuple
+    mesh: object
+    summary: dict
+    attributes: frozenset = frozenset()
+    #: (kind, sorted config items) -> Accel
+    structures: dict = field(default_factory=dict)
+    #: the plan of the first cast (``api``), and of the analysis when it made this session
+    plan: object = None
+    analysis_plan: object = None
+    #: the structure later auto casts use: None before the first plan, then 'grid' until
+    #: the online rule switches
+    chosen: str | None = None
+    #: what the grid has traced for auto casts so far (the online rule's state)
+    grid_time: float = 0.0
+    grid_rays: int = 0
+    calibration: object = None
+    kinds: tuple = ()
+    #: per triangle, the world-space unit geometric normal (float32), made on first use
+    _normals: object = None
+    _per_triangle: object = None
+    _tables: object = None
+
+    @property
+    def triangle_normals(self) -> np.ndarray:
+        """(T, 3) float32 unit normals, cross(v1 - v0, v2 - v0) / |...| in float64 (the
+        orientation Blender's ``ray_cast`` reports: extraction keeps each polygon's winding)."""
+        if self._normals is None:
+            tv = self.mesh.tri_vertices.astype(np.float64)
+            n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+            length = np.linalg.norm(n, axis=1, keepdims=True)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                self._normals = (n / length).astype(np.float32)
+        return self._normals
+
+    def per_triangle(self):
+        """(object index, instance index, polygon index, unit normal) per triangle, each
+        with one more row for a miss (-1, -1, -1, NaN) so that a miss's triangle -1 picks it."""
+        if self._per_triangle is None:
+            mesh, inst = self.mesh, self.mesh.instances
+            tail = np.array([-1], np.int32)
+            self._per_triangle = (
+                np.concatenate([inst.instance_object[mesh.instance_index], tail]),
+                np.concatenate([mesh.instance_index, tail]),
+                np.concatenate([mesh.polygon_index, tail]),
+                np.concatenate([self.triangle_normals, np.full((1, 3), np.nan, np.float32)]),
+            )
+        return self._per_triangle
+
+    def tables(self):
+        """(objects, their names) as object arrays, so ``objects[object_index[hit]]`` works."""
+        if self._tables is None:
+            obs = self.mesh.instances.objects
+            objects, names = np.empty(len(obs), object), np.empty(len(obs), object)
+            objects[:] = obs
+            names[:] = [ob.name if ob is not None else "" for ob in obs]
+            self._tables = objects, names
+        return self._tables
+
+    @property
+    def fingerprint(self):
+        return self.head, self.body
+
+    def structure(self, kind: str, **config):
+        """The structure ``kind`` over this session's mesh, built once per config."""
+        k = (kind, tuple(sorted(config.items())))
+        acc = self.structures.get(k)
+        if acc is None:
+            core.calibration._prepare(self.mesh)
+            acc = self.structures[k] = core.build(self.mesh, kind, **config)
+        return acc
+
+    def query(self, o, d, tmin, tmax, *, any_hit=False, structure="auto", budget, kinds, calibration,
+              samples, grid_config):
+        """Nearest hits (``core.Hits``) or any-hit booleans of one batch, and the structure used.
+
+        'grid', 'bvh', 'embree' use that structure.  'auto': the session's first query
+        plans (``core.plan``, the paper's rule for ``budget`` rays, timing its samples
+        from this batch and keeping their answers); the structure it picks serves every
+        later query.  While that is the grid, a later query first applies the decision to
+        the rays of all queries so far: switch when they pass the plan's break-even, or
+        by the online rule (``core.ski_rental``) once the grid's accumulated trace time
+        reaches the estimated build time of the candidate estimated fastest per ray.
+        """
+        if structure != "auto":
+            acc = self.structure("grid", **grid_config) if structure == "grid" else self.structure(structure)
+            return (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax), structure
+        if self.chosen is None:
+            grid = self.cached("grid", **grid_config)
+            p = core.plan(self.mesh, budget, calibration, rays=(o, d, tmin, tmax), samples=samples, grid=grid,
+                          grid_config=grid_config, kinds=kinds)
+            self.keep(p.grid, **grid_config)
+            self.plan, self.calibration, self.kinds = p, calibration, tuple(k for k in kinds if k != "grid")
+            self.chosen = p.chosen
+            if p.chosen != "grid":
+                p.structure = self.structure(p.chosen, **p.configs.get(p.chosen, {}))
+            t0 = time.perf_counter()
+            rest, rays = p.split(o, d, tmin, tmax)
+            acc = p.accel()
+            part = (acc.occluded if any_hit else acc.trace)(*rays)
+            out = p.merge(len(o), rest, part)
+            if p.chosen == "grid":
+                self.grid_time += p.grid_sample_per_ray * p.workload_samples + time.perf_counter() - t0
+                self.grid_rays += len(o)
+            return out, p.chosen
+        if self.chosen == "grid":
+            self._maybe_switch(len(o))
+        acc = self.structure(self.chosen, **(grid_config if self.chosen == "grid" else {}))
+        t0 = time.perf_counter()
+        out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax)
+        if self.chosen == "grid":
+            self.grid_time += time.perf_counter() - t0
+            self.grid_rays += len(o)
+        return out, self.chosen
+
+    def _maybe_switch(self, m: int):
+        """Leave the grid for the candidate estimated fastest per ray, when the rays of all
+        queries pass the plan's break-even or the online rule says so."""
+        n = self.mesh.triangle_count
+        ests = [self.calibration.estimate(k, n) for k in self.kinds if k in self.calibration.fits]
+        if not ests:
+            return
+        best = min(ests, key=lambda e: (e.per_ray, e.kind))
+        p = self.plan
+        if self.grid_rays + m > p.break_even and p.break_even_kind is not None:
+            self.chosen = min(ests, key=lambda e: (e.build + (self.grid_rays + m) * e.per_ray, e.kind)).kind
+        elif core.ski_rental(self.grid_time, self.grid_rays, best) == "switch":
+            self.chosen = best.kind
+
+    def cached(self, kind: str, **config):
+        return self.structures.get((kind, tuple(sorted(config.items()))))
+
+    def keep(self, acc, **config):
+        """Adopt a structure built elsewhere over this mesh (a plan's grid)."""
+        if acc is not None and getattr(acc, "mesh", None) is self.mesh:
+            self.structures.setdefault((acc.kind, tuple(sorted(config.items()))), acc)
+
+
+def _settings(depsgraph, settings, selected_only, grid_density):
+    props = settings if settings is not None else getattr(depsgraph.scene, "hybrid_raycast", None)
+    if selected_only is None:
+        selected_only = bool(props.selected_only) if props is not None else False
+    if grid_density is None:
+        grid_density = float(props.grid_density) if props is not None else None
+    return bool(selected_only), grid_density
+
+
+def session_key(depsgraph, selected_only: bool) -> tuple:
+    return depsgraph.scene.as_pointer(), depsgraph.view_layer.as_pointer(), bool(selected_only)
+
+
+def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress=None) -> Session:
+    """The session of ``depsgraph`` (evaluated; see ``evaluated``), extracting again
+    unless the stored one has the same fingerprint.  ``settings``: a
+    ``scene.hybrid_raycast`` (default the depsgraph scene's) for selected-only.
+    ``attributes``: per-corner data the caller needs ('normal', 'uv'), read once.
+    Nothing is stored when extraction fails."""
+    check_depsgraph(depsgraph)
+    selected_only, _ = _settings(depsgraph, settings, selected_only, None)
+    head, body = fingerprint(depsgraph, selected_only)
+    key = session_key(depsgraph, selected_only)
+    want = frozenset(attributes)
+    s = SESSIONS.get(key)
+    if s is not None and s.head == head and s.body == body:
+        if not want <= s.attributes:
+            _add_attributes(s, depsgraph, selected_only, want | s.attributes)
+        return s
+    mesh, summary = extract(depsgraph, selected_only=selected_only, progress=progress, attributes=tuple(want))
+    s = Session(key, head, body, mesh, summary, want)
+    SESSIONS[key] = s
+    return s
+
+
+def _add_attributes(s: Session, depsgraph, selected_only, attributes):
+    mesh, _ = extract(depsgraph, selected_only=selected_only, attributes=tuple(attributes))
+    if mesh.triangle_count != s.mesh.triangle_count or not np.array_equal(mesh.triangles, s.mesh.triangles) \
+            or not np.array_equal(mesh.vertices, s.mesh.vertices):
+        raise RuntimeError("the scene extracted differently with the same fingerprint")  # extraction is deterministic
+    s.mesh.instances.corner_normals = mesh.instances.corner_normals
+    s.mesh.instances.corner_uvs = mesh.instances.corner_uvs
+    s.attributes = frozenset(attributes)
+
+
+def evaluated(scene=None, view_layer=None):
+    """The evaluated depsgraph of ``scene`` and ``view_layer`` (default: the context's)."""
+    ctx = bpy.context
+    if scene is None or (scene == ctx.scene and (view_layer is None or view_layer == ctx.view_layer)):
+        return ctx.evaluated_depsgraph_get()
+    vl = view_layer if view_layer is not None else scene.view_layers[0]
+    dg = vl.depsgraph
+    dg.update()
+    return dg
+
+
+# -- the sidebar's stale flag ------------------------------------------------------------------
+
+def remember_analysis(depsgraph, selected_only: bool, body):
+    ANALYSED[depsgraph.scene.as_pointer()] = (depsgraph.view_layer.as_pointer(), bool(selected_only), body)
+
+
+def adopt_own_write(scene, view_layer, before):
+    """After the add-on wrote into the scene (the AO bake's colour attribute): evaluate
+    and take the new fingerprint as current for whatever matched ``before`` (head, body)."""
+    global _adopting
+    _adopting = True
+    try:
+        depsgraph = evaluated(scene, view_layer)
+    finally:
+        _adopting = False
+    scene_ptr = depsgraph.scene.as_pointer()
+    for s in SESSIONS.values():
+        if s.key[0] == scene_ptr and (s.head, s.body) == before:
+            s.head, s.body = fingerprint(depsgraph, s.key[2])
+    seen = ANALYSED.get(scene_ptr)
+    if seen is not None and seen[0] == depsgraph.view_layer.as_pointer() and seen[2] == before[1]:
+        ANALYSED[scene_ptr] = (seen[0], seen[1], fingerprint(depsgraph, seen[1])[1])
+
+
+@persistent
+def on_depsgraph_update(scene, depsgraph):
+    if _adopting:
+        return
+    seen = ANALYSED.get(scene.as_pointer())
+    props = getattr(scene, "hybrid_raycast", None)
+    if seen is None or props is None or not props.has_results or props.geometry_changed:
+        return
+    if depsgraph.view_layer.as_pointer() != seen[0]:
+        return
+    if fingerprint(depsgraph, seen[1])[1] != seen[2]:
+        props.geometry_changed = True
+
+
+@persistent
+def on_load_post(*_args):
+    clear()
+
+
+def clear():
+    SESSIONS.clear()
+    ANALYSED.clear()
+
+
+_HANDLERS = (
+    ("depsgraph_update_post", on_depsgraph_update),
+    ("frame_change_post", on_depsgraph_update),
+    ("load_post", on_load_post),
+)
+
+
+def register():
+    for name, fn in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        if fn not in lst:
+            lst.append(fn)
+
+
+def unregister():
+    for name, fn in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        # match by name too: a reloaded module brings new function objects
+        for h in [h for h in lst if h is fn or (getattr(h, "__name__", "") == fn.__name__
+                                               and getattr(h, "__module__", "") == fn.__module__)]:
+            lst.remove(h)
+    clear()
