@@ -38,7 +38,11 @@ import numpy as np
 
 from .accel import Accel
 from .factory import build
-from .calibration import Calibration, _prepare, available_kinds, load_default, time_trace
+from .decide.calfile import Calibration, load_default
+from .decide.cost import break_even
+from .decide.measurements import _prepare, available_kinds, time_trace, unavailable_reason
+from .decide.rule import REUSES_SAMPLES, choose
+from .decide.work import grid_work
 from .hits import Hits
 from .mesh import TriangleMesh
 
@@ -50,9 +54,6 @@ from .mesh import TriangleMesh
 DEFAULT_SAMPLES = 16384
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
-#: structures that answer every ray bit for bit like the grid: a plan that drew its samples
-#: from the workload keeps their answers when it chooses one of these
-REUSES_SAMPLES = ("grid", "bvh")
 
 
 def _check_expected(expected_rays) -> float:
@@ -103,11 +104,6 @@ class Candidate:
         return d
 
 
-def _break_even(build_time, t_grid, t_hds) -> float:
-    """R* = T_B^H / (t_G - t_H), inf when the grid is at least as fast per ray."""
-    return build_time / (t_grid - t_hds) if t_grid > t_hds else math.inf
-
-
 @dataclass
 class Plan:
     """Everything the decision used and decided.  Times in seconds.
@@ -136,6 +132,9 @@ class Plan:
     #: the grid's time per ray on the K samples, and the small-batch ratio applied to it
     grid_sample_per_ray: float = 0.0
     grid_sample_ratio: float = 1.0
+    #: the grid sample's per-ray work counts (``decide.work.Work`` as a dict) when the
+    #: calibration's count model made the estimate, else None
+    work: dict | None = None
     #: sample rays that came from the workload and whose answers the plan keeps
     workload_samples: int = 0
     estimate_time: float = 0.0
@@ -143,6 +142,9 @@ class Plan:
     grid_reused: bool = False
     calibration_source: str = ""
     notes: list[str] = field(default_factory=list)
+    #: candidates asked for but left out, {kind: one-line reason} (embreex missing, no
+    #: calibration constants); the candidates that exist are the keys of ``candidates``
+    unavailable: dict = field(default_factory=dict)
     #: what ``trace`` did: kind, build_time (0 for a reused grid), trace_time, rays
     executed: list[dict] = field(default_factory=list)
     # not serialised: the objects the plan traces with
@@ -174,10 +176,11 @@ class Plan:
             "break_even": _json_float(self.break_even), "break_even_low": _json_float(self.break_even_low),
             "break_even_high": _json_float(self.break_even_high), "break_even_kind": self.break_even_kind,
             "decision": self.decision, "certain": self.certain, "grid_sample_per_ray": self.grid_sample_per_ray,
-            "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples,
+            "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
+            "unavailable": dict(self.unavailable),
             "executed": [dict(e) for e in self.executed],
         }
 
@@ -285,6 +288,8 @@ def plan_from_timings(
     kinds=("grid", "bvh", "embree"),
     samples: int = 0,
     answered: int = 0,
+    per_ray: dict | None = None,
+    unavailable: dict | None = None,
     notes=(),
 ) -> Plan:
     """The plan's arithmetic alone, from a measured grid and the calibration.
@@ -295,10 +300,13 @@ def plan_from_timings(
     grid's time per ray (default: the point value).  answered: rays of the workload the
     grid's samples have answered already; the decision then weighs what is left to trace,
     R - answered rays for the grid and the structures in REUSES_SAMPLES, R for the others
-    (the break-even figures still count a workload's rays from zero).
+    (the break-even figures still count a workload's rays from zero).  per_ray:
+    {kind: (point, low, high)} time per ray of a candidate from elsewhere (the count
+    model) instead of the calibration's estimate for N.
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
+    unavailable = dict(unavailable or {})
     n = int(triangles)
     g_lo = grid_per_ray if grid_per_ray_low is None else min(grid_per_ray_low, grid_per_ray)
     g_hi = grid_per_ray if grid_per_ray_high is None else max(grid_per_ray_high, grid_per_ray)
@@ -308,15 +316,19 @@ def plan_from_timings(
         if kind == "grid":
             continue
         if kind not in calibration.fits:
-            notes.append(f"{kind} skipped: no calibration constants for it (calibrated: {', '.join(calibration.fits) or 'none'})")
+            why = f"no calibration constants for it (calibrated: {', '.join(calibration.fits) or 'none'})"
+            unavailable[kind] = why
+            notes.append(f"{kind} skipped: {why}")
             continue
         e = calibration.estimate(kind, n)
+        if per_ray and kind in per_ray:
+            e.per_ray, e.per_ray_low, e.per_ray_high = per_ray[kind]
         cands[kind] = Candidate(
             kind, e.build, e.build_low, e.build_high, e.per_ray, e.per_ray_low, e.per_ray_high, measured=False,
-            break_even=_break_even(e.build, grid_per_ray, e.per_ray),
+            break_even=break_even(e.build, grid_per_ray, e.per_ray),
             # the low end: cheap build, fast rays, a slow grid; the high end: the opposite
-            break_even_low=_break_even(e.build_low, g_hi, e.per_ray_low),
-            break_even_high=_break_even(e.build_high, g_lo, e.per_ray_high),
+            break_even_low=break_even(e.build_low, g_hi, e.per_ray_low),
+            break_even_high=break_even(e.build_high, g_lo, e.per_ray_high),
         )
     hds = [c for k, c in cands.items() if k != "grid"]
     if n == 0:
@@ -330,18 +342,9 @@ def plan_from_timings(
     else:
         be, be_low, be_high, be_kind = math.inf, math.inf, math.inf, None
     answered = max(0, int(answered))
-    if not answered:
-        if r <= be:
-            decision = "grid"  # ties go to the grid: nothing more to build
-        else:
-            decision = min(hds, key=lambda c: (float(c.total_time(r)), c.kind)).kind
-    else:
-        left = max(r - answered, 0.0)
-        if left == 0:
-            notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
-        costs = [(left * cands["grid"].per_ray, 0, "grid")] + [
-            (float(c.total_time(left if c.kind in REUSES_SAMPLES else r)), 1, c.kind) for c in hds]
-        decision = min(costs)[2]  # ties go to the grid, then to the first name
+    if answered and r <= answered:
+        notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
+    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered)[0])
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
@@ -349,7 +352,7 @@ def plan_from_timings(
         triangles=n, expected_rays=r, samples=int(samples), grid_build_time=float(grid_build_time),
         grid_per_ray=float(grid_per_ray), candidates=cands, break_even=be, break_even_low=be_low,
         break_even_high=be_high, break_even_kind=be_kind, decision=decision.upper(), certain=certain,
-        calibration_source=calibration.source, notes=notes,
+        calibration_source=calibration.source, notes=notes, unavailable=unavailable,
     )
 
 
@@ -406,6 +409,7 @@ def plan(
     if calibration is None:
         calibration = load_default()
         notes.append(f"no calibration given: using {calibration.source}")
+    unavailable = {k: why for k in kinds if (why := unavailable_reason(k))}
     kinds, skipped = available_kinds(kinds)
     notes += skipped
     k = max(1, int(samples))
@@ -427,11 +431,26 @@ def plan(
     else:
         k, t_sample, what = 0, 0.0, "none"
     ratio, ratio_lo, ratio_hi = calibration.grid_sample_ratio(k) if k else (1.0, 1.0, 1.0)
-    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), t_sample * ratio,
-                          grid_per_ray_low=t_sample * ratio_lo, grid_per_ray_high=t_sample * ratio_hi,
-                          kinds=kinds, samples=k, answered=k if idx is not None else 0, notes=notes)
-    p.grid_sample_per_ray, p.grid_sample_ratio = t_sample, ratio
-    if rays is not None or k:
+    g, g_lo, g_hi = t_sample * ratio, t_sample * ratio_lo, t_sample * ratio_hi
+    work, per_ray = None, {}
+    if k and calibration.counts.get("grid") is not None:
+        # counts instead of the sample's time: the same rays through the same grid give the
+        # same counts, so the estimate repeats exactly with a fixed calibration
+        work = grid_work(grid, o, d, sample.t, tmin, tmax).to_dict()
+        g, g_lo, g_hi = calibration.count_per_ray("grid", mesh.triangle_count, work)
+        per_ray = {kk: e for kk in kinds if kk != "grid"
+                   if (e := calibration.count_per_ray(kk, mesh.triangle_count, work)) is not None}
+    p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), g,
+                          grid_per_ray_low=g_lo, grid_per_ray_high=g_hi, kinds=kinds, samples=k,
+                          answered=k if idx is not None else 0, per_ray=per_ray, unavailable=unavailable,
+                          notes=notes)
+    p.grid_sample_per_ray = t_sample
+    p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
+    p.work = work
+    if work is not None:
+        p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells, "
+                       f"{work['refs']:.1f} references per ray; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
+    elif rays is not None or k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
                        f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")
     if idx is not None and k:

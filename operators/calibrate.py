@@ -53,8 +53,8 @@ def load_calibration():
 
 def calibration_job(job: Job, *, scale: str = "quick", path=None):
     """Generator: calibrate the candidates that can be built here, save, return the result."""
-    if scale not in core.calibration.RAYS_PER_SCENE:
-        raise BadInput(f"unknown calibration scale {scale!r}; expected one of {', '.join(core.calibration.RAYS_PER_SCENE)}")
+    if scale not in core.decide.RAYS_PER_SCENE:
+        raise BadInput(f"unknown calibration scale {scale!r}; expected one of {', '.join(core.decide.RAYS_PER_SCENE)}")
     path = Path(path) if path is not None else calibration_path()
     _check_writable(path)
     kinds = ("bvh", "embree") if core.embree.embree_available() else ("bvh",)

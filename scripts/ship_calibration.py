@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _package  # noqa: E402
 
 _package.core_package()
-from hybrid_raycast.core import calibration as C  # noqa: E402
+from hybrid_raycast.core import decide as C  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -12,9 +12,10 @@ import math
 import numpy as np
 import pytest
 
-from hybrid_raycast.core import calibration as C
+from hybrid_raycast.core.decide import calfile as CF
+from hybrid_raycast.core.decide import measurements as M
 from hybrid_raycast.core import scenes as S
-from hybrid_raycast.core.calibration import (
+from hybrid_raycast.core.decide import (
     CALIBRATION_FORMAT,
     Calibration,
     CalibrationError,
@@ -159,7 +160,7 @@ def test_nonsense_constants_are_refused(tmp_path, change, reason):
 
 
 def test_shipped_defaults_load_and_are_labelled():
-    assert C.DEFAULT_PATH.is_file(), f"the shipped defaults are missing: {C.DEFAULT_PATH}"
+    assert CF.DEFAULT_PATH.is_file(), f"the shipped defaults are missing: {CF.DEFAULT_PATH}"
     cal = load_default()
     assert cal.source == "shipped defaults", f"shipped defaults came back as {cal.source!r}: {cal.notes}"
     assert "bvh" in cal.fits and len(cal.scenes) >= 8, f"shipped defaults fit {cal.kinds} on {len(cal.scenes)} scenes"
@@ -169,7 +170,7 @@ def test_shipped_defaults_load_and_are_labelled():
     (lambda p: None, "no calibration file"),
     (lambda p: p.write_text("{garbage"), "not valid JSON"),
     (lambda p: p.write_bytes(b"\xff\xfe\x00garbage"), "cal.json"),
-    (lambda p: p.write_text(json.dumps({**hand_calibration().to_dict(), "version": {**C.current_version(), "numpy": "0.1"}})),
+    (lambda p: p.write_text(json.dumps({**hand_calibration().to_dict(), "version": {**CF.current_version(), "numpy": "0.1"}})),
      "another setup"),
     (lambda p: p.mkdir(), "cannot read"),
 ])
@@ -194,7 +195,7 @@ def test_load_or_default_recalibrates_when_asked_and_saves(tmp_path, monkeypatch
         calls.append(kw)
         return hand_calibration()
 
-    monkeypatch.setattr(C, "calibrate", fake_calibrate)
+    monkeypatch.setattr(M, "calibrate", fake_calibrate)
     p = tmp_path / "cal.json"
     cal, msg = load_or_default(p, recalibrate=True, scale="tiny")
     assert calls == [{"scale": "tiny"}], f"calibrate called with {calls}"
@@ -206,13 +207,13 @@ def test_load_or_default_survives_a_failing_recalibration(tmp_path, monkeypatch)
     def broken(**kw):
         raise RuntimeError("no structures today")
 
-    monkeypatch.setattr(C, "calibrate", broken)
+    monkeypatch.setattr(M, "calibrate", broken)
     cal, msg = load_or_default(tmp_path / "cal.json", recalibrate=True)
     assert cal.source == "shipped defaults" and "recalibration failed" in msg and "no structures today" in msg, msg
 
 
 def test_unusable_shipped_defaults_give_a_labelled_builtin_fallback(tmp_path, monkeypatch):
-    monkeypatch.setattr(C, "DEFAULT_PATH", tmp_path / "gone.json")
+    monkeypatch.setattr(CF, "DEFAULT_PATH", tmp_path / "gone.json")
     cal, msg = load_or_default(None)
     assert cal.source == "built-in fallback" and "bvh" in cal.fits, f"{cal.source}: {msg}"
     assert "no calibration file" in cal.notes[0]
@@ -233,7 +234,7 @@ def test_calibrate_measures_fits_and_reports_progress_to_one():
     f = cal.fits["brute"]
     assert f.c_B == pytest.approx(np.mean([r.c_B("brute") for r in cal.scenes]))
     assert f.c_R == pytest.approx(np.mean([r.c_R("brute") for r in cal.scenes]))
-    assert cal.source == "measured" and cal.rays_per_scene == 40 and cal.version == C.current_version()
+    assert cal.source == "measured" and cal.rays_per_scene == 40 and cal.version == CF.current_version()
     assert Calibration.from_json(cal.to_json()).to_dict() == cal.to_dict()
 
 
@@ -254,7 +255,7 @@ def test_calibrate_tiny_set_records_the_grid_but_fits_only_the_candidates():
 
 
 def test_measure_break_even_uses_the_estimates_formula_on_measured_times():
-    be = C.measure_break_even(S.torus(2000), 500, kinds=("grid", "bvh"))
+    be = M.measure_break_even(S.torus(2000), 500, kinds=("grid", "bvh"))
     g, b = be.measurements["grid"], be.measurements["bvh"]
     want = b.build_time / (g.per_ray - b.per_ray) if g.per_ray > b.per_ray else math.inf
     assert be.R_C["bvh"] == want and be.rays == 500 and be.triangles == S.torus(2000).triangle_count
@@ -357,8 +358,8 @@ def test_time_trace_runs_the_batch_as_trace_does_and_leaves_the_chunk_size_alone
     from hybrid_raycast.core.rays import uniform_rays
 
     o, d = uniform_rays(mesh, 500, seed=3)
-    g = C.build(mesh, "grid", threads=2)
-    hits, dt = C.time_trace(g, o, d)
+    g = M.build(mesh, "grid", threads=2)
+    hits, dt = M.time_trace(g, o, d)
     assert dt > 0 and np.array_equal(hits.triangle, g.trace(o, d).triangle)
     assert "chunk_size" not in g.__dict__, "time_trace must not change the structure's chunks"
 
@@ -368,6 +369,6 @@ def test_small_scales_still_time_the_grid_on_a_large_workload_for_the_ratio():
     # batch (a ratio of 2 was measured); the grid's reference is at least GRID_LARGE_RAYS
     cal = calibrate(S.calibration_set("tiny")[:2], kinds=("bvh",), rays_per_scene=2000, sample_ladder=(1024, 16384))
     for r in cal.scenes:
-        assert r.kinds["grid"].rays >= C.GRID_LARGE_RAYS and r.kinds["bvh"].rays == 2000
+        assert r.kinds["grid"].rays >= M.GRID_LARGE_RAYS and r.kinds["bvh"].rays == 2000
     med, lo, hi = cal.grid_sample_ratio(16384)
     assert 0 < lo <= med <= hi and med < 1.5, (med, lo, hi)

@@ -71,7 +71,7 @@ def test_render_budget_multiplies_every_factor_and_typing_a_number_switches_to_c
 
 def test_infinite_break_even_is_a_flag_and_null_in_json(fresh, addon, tmp_path):
     core = addon.core
-    cal = core.Calibration(fits={"bvh": core.calibration.KindFit(1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1)}, source="measured")
+    cal = core.Calibration(fits={"bvh": core.decide.KindFit(1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1)}, source="measured")
     cal.save(addon.operators.calibrate.calibration_path())
     simple_scene()
     props().candidates = {"BVH"}

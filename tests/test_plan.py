@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hybrid_raycast.core import build, scenes
-from hybrid_raycast.core.calibration import Calibration, KindFit
+from hybrid_raycast.core.decide import Calibration, KindFit
 from hybrid_raycast.core.hits import Hits
 from hybrid_raycast.core.mesh import TriangleMesh
 from hybrid_raycast.core.plan import plan, plan_from_timings, trace_online
@@ -292,7 +292,7 @@ def test_online_without_constants_for_the_kind_keeps_the_grid_and_says_so():
 
 def _with_ratio(cal: Calibration, ratio: float, spread=(0.5, 2.0)) -> Calibration:
     """Give a hand-made calibration three scenes whose grid ratio at every K is ratio*spread."""
-    from hybrid_raycast.core.calibration import Measurement, SceneRecord
+    from hybrid_raycast.core.decide import Measurement, SceneRecord
 
     for i, q in enumerate((ratio * spread[0], ratio, ratio * spread[1])):
         rec = SceneRecord(f"r{i}", 100, 100, {"grid": Measurement(0.0, 1e-4, 100)})

@@ -1,0 +1,318 @@
+"""The calibration file: fitted constants, the scenes behind them, where they hold, and
+the policy for loading one.
+
+A calibration is only valid where it was measured: the file records the format, the
+package, numpy and Python versions and a machine fingerprint (OS, architecture, CPU
+name, core count).  ``load`` refuses anything else with a ``CalibrationError`` whose
+message is one line; ``load_or_default`` never raises and falls back on the shipped
+defaults (``default_calibration.json``, labelled ``source='shipped defaults'``) or on a
+fresh calibration when asked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import re
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord
+
+#: bump when the JSON layout or the meaning of a field changes
+CALIBRATION_FORMAT = 2
+#: the constants shipped with the package, measured by ``calibrate()`` on the default set
+DEFAULT_PATH = Path(__file__).resolve().parents[1] / "default_calibration.json"
+
+
+class CalibrationError(Exception):
+    """A calibration that cannot be used here; ``str(error)`` is a one-line reason."""
+
+
+# -- where it was measured ---------------------------------------------------------------------
+
+def package_version() -> str:
+    """The extension's version from blender_manifest.toml at the package root."""
+    try:
+        text = (Path(__file__).resolve().parents[2] / "blender_manifest.toml").read_text(encoding="utf-8")
+    except OSError:
+        return "unknown"
+    m = re.search(r'^version\s*=\s*"([^"]*)"', text, re.M)
+    return m.group(1) if m else "unknown"
+
+
+def _cpu_name() -> str:
+    name = platform.processor()
+    if not name and sys.platform.startswith("linux"):
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+                for line in f:
+                    if line.startswith("model name"):
+                        return line.split(":", 1)[1].strip()
+        except OSError:
+            pass
+    return name or "unknown"
+
+
+def machine_fingerprint() -> dict:
+    return {"system": platform.system(), "machine": platform.machine(), "processor": _cpu_name(), "cpus": os.cpu_count()}
+
+
+def current_version() -> dict:
+    """What a calibration depends on besides the scenes: compared field by field on load."""
+    return {
+        "format": CALIBRATION_FORMAT,
+        "package": package_version(),
+        "numpy": np.__version__,
+        "python": f"{sys.version_info[0]}.{sys.version_info[1]}",
+        "machine": machine_fingerprint(),
+    }
+
+
+def _first_difference(there: dict, here: dict, prefix: str = "") -> str | None:
+    for key in sorted(set(there) | set(here)):
+        a, b = there.get(key), here.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            d = _first_difference(a, b, f"{prefix}{key}.")
+            if d:
+                return d
+        elif a != b:
+            return f"{prefix}{key} {a!r} in the file, {b!r} here"
+    return None
+
+
+# -- the calibration -------------------------------------------------------------------------
+
+@dataclass
+class Calibration:
+    """Fitted constants per structure, the per-scene data behind them, and where they hold.
+
+    ``source`` says where the numbers come from: 'measured' (``calibrate`` here),
+    'shipped defaults' (the package's file, measured on another machine), or anything a
+    caller sets (tests build one by hand).
+    """
+
+    fits: dict[str, KindFit]
+    scenes: list[SceneRecord] = field(default_factory=list)
+    model: str = DEFAULT_MODEL
+    spread: tuple = DEFAULT_SPREAD
+    rays_per_scene: int = 0
+    scale: str = ""
+    threads: int | None = None
+    duration_s: float = 0.0
+    created: str = ""
+    source: str = "measured"
+    version: dict = field(default_factory=current_version)
+    notes: list[str] = field(default_factory=list)
+    #: per-ray time models on the grid sample's work counts, {'grid' | kind: CountFit}
+    #: (``cost.fit_counts``); empty in files made before them: the plan then times its sample
+    counts: dict = field(default_factory=dict)
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(self.fits)
+
+    def estimate(self, kind: str, n: int) -> Estimate:
+        """Build and per-ray time of ``kind`` for an N-triangle scene, with the interval."""
+        if kind not in self.fits:
+            raise KeyError(f"no calibration constants for {kind!r} (calibrated: {', '.join(self.fits) or 'none'})")
+        return MODELS[self.model][1](self.fits[kind], kind, n)
+
+    def grid_sample_ratio(self, k: int) -> tuple[float, float, float]:
+        """(median, low, high) of the per-scene ratio large-workload grid time per ray /
+        time per ray on a K-ray sample, interpolated in log2 K between the measured sample
+        sizes (clamped at the ends); low/high are the calibration's spread percentiles.
+
+        A plan multiplies its sample's time per ray by it: a small batch pays the lockstep
+        traversal's fixed per-step cost over few rays, so it overstates a large workload's
+        time per ray (measured 1.2-1.5x at K = 16,384, over 3x at K = 1,024).  (1, 1, 1)
+        when the calibration holds no grid samples.
+        """
+        ladder = sorted({kk for r in self.scenes for kk in r.grid_samples})
+        if not ladder:
+            return 1.0, 1.0, 1.0
+        per_k = []
+        for kk in ladder:
+            q = [x for x in (r.grid_sample_ratio(kk) for r in self.scenes) if x is not None and math.isfinite(x) and x > 0]
+            med = float(np.median(q))
+            lo, hi = (float(v) for v in np.percentile(q, self.spread))
+            per_k.append((min(lo, med), med, max(hi, med)))
+        x = np.log2(np.asarray(ladder, np.float64))
+        xk = math.log2(max(int(k), 1))
+        lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
+        return med, lo, hi
+
+    def count_per_ray(self, kind: str, n: int, work: dict):
+        """(point, low, high) time per ray of ``kind`` ('grid' or a structure) on an
+        N-triangle scene whose grid sample counted ``work``; None without a count model."""
+        f = self.counts.get(kind)
+        if f is None or not work:
+            return None
+        t = f.predict(n, work)
+        return t, t * f.low, t * f.high
+
+    def describe(self) -> str:
+        """One line per structure: the constants and their interval, in ns."""
+        lines = [f"calibration ({self.source}, {self.model} model, {len(self.scenes)} scenes, {self.created or 'undated'})"]
+        for k, f in self.fits.items():
+            lines.append(
+                f"  {k:7s} c_B {f.c_B * 1e9:8.2f} ns [{f.c_B_low * 1e9:.2f}, {f.c_B_high * 1e9:.2f}]"
+                f"   c_R {f.c_R * 1e9:8.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]   ({f.scenes} scenes)"
+            )
+        for k, f in self.counts.items():
+            lines.append(f"  {k:7s} per ray = " + " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(f.terms, f.coef))
+                         + f"   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
+        return "\n".join(lines)
+
+    # -- JSON ---------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["spread"] = list(self.spread)
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1)
+
+    @classmethod
+    def from_dict(cls, d: dict, *, check_version: bool = True) -> "Calibration":
+        """Rebuild from ``to_dict``; raises CalibrationError naming what is wrong."""
+        if not isinstance(d, dict):
+            raise CalibrationError(f"expected a JSON object, found {type(d).__name__}")
+        version = d.get("version")
+        if not isinstance(version, dict) or "format" not in version:
+            raise CalibrationError("no version information (not a calibration file?)")
+        if version.get("format") != CALIBRATION_FORMAT:
+            raise CalibrationError(f"calibration format {version.get('format')!r}, this package reads format {CALIBRATION_FORMAT}")
+        if check_version:
+            diff = _first_difference(version, current_version())
+            if diff:
+                raise CalibrationError(f"made for another setup: {diff}")
+        try:
+            fits = {str(k): KindFit(**v) for k, v in d["fits"].items()}
+            scenes = [
+                SceneRecord(s["name"], int(s["triangles"]), int(s["rays"]), {k: Measurement(**m) for k, m in s["kinds"].items()},
+                            {int(k): float(v) for k, v in s.get("grid_samples", {}).items()},
+                            {str(k): float(v) for k, v in s.get("work", {}).items()})
+                for s in d.get("scenes", [])
+            ]
+            model = str(d.get("model", DEFAULT_MODEL))
+            cal = cls(
+                fits=fits, scenes=scenes, model=model, spread=tuple(d.get("spread", DEFAULT_SPREAD)),
+                rays_per_scene=int(d.get("rays_per_scene", 0)), scale=str(d.get("scale", "")),
+                threads=d.get("threads"), duration_s=float(d.get("duration_s", 0.0)), created=str(d.get("created", "")),
+                source=str(d.get("source", "measured")), version=version, notes=[str(x) for x in d.get("notes", [])],
+                counts={str(k): CountFit(tuple(v["terms"]), tuple(float(c) for c in v["coef"]), float(v["low"]),
+                                         float(v["high"]), int(v.get("scenes", 0))) for k, v in d.get("counts", {}).items()},
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise CalibrationError(f"malformed calibration data ({type(e).__name__}: {e})") from None
+        if model not in MODELS:
+            raise CalibrationError(f"unknown model {model!r} (this package knows {', '.join(MODELS)})")
+        if not fits:
+            raise CalibrationError("no fitted constants in the file")
+        for k, f in fits.items():
+            vals = (f.c_B, f.c_R, f.c_B_low, f.c_B_high, f.c_R_low, f.c_R_high)
+            if not all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in vals):
+                raise CalibrationError(f"constants of {k!r} are not finite non-negative numbers: {vals}")
+            if not (f.c_B_low <= f.c_B <= f.c_B_high and f.c_R_low <= f.c_R <= f.c_R_high):
+                raise CalibrationError(f"interval of {k!r} does not contain its constants")
+        return cal
+
+    @classmethod
+    def from_json(cls, text: str, *, check_version: bool = True) -> "Calibration":
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise CalibrationError(f"not valid JSON ({e.msg} at line {e.lineno})") from None
+        return cls.from_dict(d, check_version=check_version)
+
+    def save(self, path) -> Path:
+        """Write JSON to ``path`` (atomically: a temporary file, then a rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(self.to_json(), encoding="utf-8")
+        os.replace(tmp, path)
+        return path
+
+
+def load(path, *, check_version: bool = True) -> Calibration:
+    """Read a calibration saved by ``Calibration.save``.
+
+    Raises CalibrationError (one-line reason) when the file is missing, unreadable, not
+    JSON, malformed, or made with another format, package, numpy, Python or machine.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CalibrationError(f"no calibration file at {path}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CalibrationError(f"cannot read {path}: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        return Calibration.from_json(text, check_version=check_version)
+    except CalibrationError as e:
+        raise CalibrationError(f"{path.name}: {e}") from None
+
+
+#: last resort when the shipped file itself is unreadable (a broken install): the shipped
+#: defaults' (c_B, c_R) rounded, with a factor-3 interval, labelled as such
+_BUILTIN = {"bvh": (4.5e-7, 6e-7), "embree": (1.8e-7, 9e-8)}
+
+
+def _builtin_fallback(reason: str) -> Calibration:
+    fits = {k: KindFit(b, r, b / 3, b * 3, r / 3, r * 3, 0) for k, (b, r) in _BUILTIN.items()}
+    return Calibration(fits, source="built-in fallback", notes=[f"shipped defaults unusable: {reason}"])
+
+
+def load_default() -> Calibration:
+    """The shipped defaults (any machine, same format), labelled ``source='shipped defaults'``."""
+    try:
+        cal = load(DEFAULT_PATH, check_version=False)
+    except CalibrationError as e:
+        return _builtin_fallback(str(e))
+    cal.source = "shipped defaults"
+    return cal
+
+
+def load_or_default(path, *, recalibrate: bool = False, progress=None, **calibrate_kw) -> tuple[Calibration, str]:
+    """A usable calibration and a one-line message saying where it came from; never raises.
+
+    Loads ``path`` when it holds a calibration made here.  Otherwise (missing, corrupt,
+    foreign) it either recalibrates (``recalibrate=True``; the result is saved to
+    ``path``, with ``progress`` and ``calibrate_kw`` passed to ``calibrate``) or returns
+    the shipped defaults.  ``path=None`` means the shipped defaults.
+    """
+    if path is None:
+        cal = load_default()
+        return cal, f"using {cal.source} (no calibration file given)"
+    try:
+        cal = load(path)
+        return cal, f"loaded calibration from {path} (measured {cal.created or 'undated'}, {len(cal.scenes)} scenes)"
+    except CalibrationError as e:
+        reason = str(e)
+    except Exception as e:  # never crash on a bad file
+        reason = f"{path}: unexpected {type(e).__name__}: {e}"
+    if recalibrate:
+        try:
+            from .measurements import calibrate
+
+            cal = calibrate(progress=progress, **calibrate_kw)
+        except Exception as e:
+            cal = load_default()
+            return cal, f"{reason}; recalibration failed ({type(e).__name__}: {e}); using {cal.source}"
+        try:
+            cal.save(path)
+            where = f"saved to {path}"
+        except OSError as e:
+            where = f"could not save to {path}: {e.strerror or e}"
+        return cal, f"{reason}; recalibrated in {cal.duration_s:.0f} s, {where}"
+    cal = load_default()
+    return cal, f"{reason}; using {cal.source} (run calibrate to measure this machine)"
+
+

@@ -1,0 +1,333 @@
+"""Measuring: timing a structure as a caller would, the calibration run, and the true
+break-even of the paper's evaluation.
+
+Timings: ``time.perf_counter`` around builds and traces, each batch traced as ``trace``
+runs it (``time_trace``).  The default 131,072 rays per scene fill both threads of every
+structure, so the per-ray constants are a large workload's.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+
+from ..accel import Accel
+from ..factory import build
+from ..mesh import TriangleMesh
+from .calfile import Calibration
+from .work import Work, grid_work
+from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break_even, fit, fit_counts, nlog2n
+
+#: rays per scene for each calibration scale.  The default is two chunks of the BVH
+#: (2 x 65,536 rays), so that the measured time per ray is a large workload's, spread
+#: over the structure's threads like one
+RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17}
+#: sample sizes K at which calibration times the grid on each scene, to correct a plan's
+#: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
+SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
+#: the least number of rays the grid's large-workload time per ray is measured on when
+#: samples are timed (whatever the scale's rays per scene)
+GRID_LARGE_RAYS = 1 << 17
+#: builds and traces of every structure per calibration scene, interleaved; the record
+#: keeps the medians (on this 2-core VM one trace moves by 20-40% between runs)
+CALIBRATION_REPEATS = 3
+#: sample rays on which calibration counts the grid's per-ray work, as a plan does
+WORK_SAMPLES = 16384
+
+
+# -- measuring ---------------------------------------------------------------------------------
+
+def time_trace(accel: Accel, origins, directions, tmin=0.0, tmax=np.inf):
+    """Trace and time a batch as a caller would: (Hits, seconds).
+
+    The batch runs exactly as ``accel.trace`` runs it (its chunks, its threads).  Splitting
+    a small batch over the threads does not make it cost what a large workload does: with
+    a few thousand rays per thread the numpy calls of the two threads contend for the GIL
+    and the time per ray doubled (measured on the real meshes at K = 16,384).  A plan
+    corrects its small sample with ``Calibration.grid_sample_ratio`` instead.
+    """
+    t0 = time.perf_counter()
+    hits = accel.trace(origins, directions, tmin, tmax)
+    return hits, time.perf_counter() - t0
+
+
+def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None, config=None) -> Measurement:
+    """Build ``kind`` over ``mesh`` and trace the rays through it: one Measurement."""
+    cfg = dict(config or {})
+    if threads is not None:
+        cfg.setdefault("threads", threads)
+    accel = build(mesh, kind, **cfg)
+    _, dt = time_trace(accel, origins, directions)
+    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads))
+
+
+def unavailable_reason(kind: str) -> str | None:
+    """Why ``kind`` cannot be built here (one line), or None when it can."""
+    from .. import embree
+
+    if kind == "embree" and not embree.embree_available():
+        why = getattr(embree, "embree_unavailable_reason", None)
+        return (why() if why is not None else None) or "embreex is not installed"
+    return None
+
+
+def available_kinds(kinds) -> tuple[tuple[str, ...], list[str]]:
+    """The kinds that can be built here, and a note for each one that cannot."""
+    keep, notes = [], []
+    for k in kinds:
+        why = unavailable_reason(k)
+        if why:
+            notes.append(f"{k} skipped: {why}")
+        else:
+            keep.append(k)
+    return tuple(keep), notes
+
+
+def _prepare(mesh: TriangleMesh):
+    """Compute the mesh's cached arrays before timing, so no structure pays for them."""
+    mesh.tri_vertices
+    mesh.valid
+
+
+def warm_up(kinds, *, threads=None, configs=None):
+    """Build and trace each kind once on a tiny scene, untimed: the first build of a kind
+    in a process pays one-off costs (Embree starts its threads, ~10 ms measured here)."""
+    from ..rays import uniform_rays
+    from ..scenes import sphere
+
+    warm = sphere(80)
+    _prepare(warm)
+    o, d = uniform_rays(warm, 64, seed=0)
+    for kind in kinds:
+        measure(warm, kind, o, d, threads=threads, config=(configs or {}).get(kind))
+
+
+def interleaved(jobs: dict, repeats: int) -> dict[str, list]:
+    """Run every job ``repeats`` times, interleaved (round r runs the jobs in an order
+    rotated by r), and return each job's results in run order.
+
+    On a shared machine the time of one run drifts by 20-40% from second to second;
+    interleaving spreads that drift over every job alike, so the medians of the runs
+    compare fairly and their spread says how repeatable each figure is."""
+    names = list(jobs)
+    out = {k: [] for k in names}
+    for r in range(max(1, int(repeats))):
+        for i in range(len(names)):
+            k = names[(i + r) % len(names)]
+            out[k].append(jobs[k]())
+    return out
+
+
+@dataclass
+class BreakEven:
+    """Measured break-even of each hierarchical structure against the grid on one scene.
+
+    ``R_C[k] = T_B^k / (t_G - t_k)`` with measured times (inf where t_G <= t_k), the same
+    formula as the estimate (the grid's build is sunk), so the two compare directly.
+    measurements: each structure's median build time and median trace time over the
+    interleaved repeats; R_C_repeats: R_C of each repeat on its own, whose spread is the
+    measurement's own repeatability (``repeatability``).
+    """
+
+    triangles: int
+    rays: int
+    measurements: dict[str, Measurement]
+    R_C: dict[str, float]
+    repeats: int = 1
+    R_C_repeats: dict[str, list] = field(default_factory=dict)
+    #: every repeat's Measurement per kind
+    runs: dict[str, list] = field(default_factory=dict)
+    #: the last structure built of each kind (not serialised), for callers that go on using it
+    structures: dict = field(default_factory=dict, repr=False)
+
+    def repeatability(self, kind: str) -> float:
+        """(max - min) / median of the repeats' R_C, in percent (NaN with fewer than two
+        finite repeats): how far the truth itself moves between runs."""
+        v = [x for x in self.R_C_repeats.get(kind, []) if math.isfinite(x)]
+        if len(v) < 2:
+            return math.nan
+        return 100.0 * (max(v) - min(v)) / float(np.median(v))
+
+
+def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threads=None, configs=None, seed=0,
+                       repeats: int = 1) -> BreakEven:
+    """Really build every structure in ``kinds`` (which must include 'grid') and trace
+    ``rays`` through each: the true break-even R_C of the paper's evaluation.
+
+    rays: (origins, directions), or a count of the paper's uniform random rays.
+    configs: optional {kind: config dict} passed to ``build``.
+    repeats: builds and traces of every structure, interleaved (``interleaved``); the
+    break-even is taken from the medians.
+    """
+    from ..rays import uniform_rays
+
+    if "grid" not in kinds:
+        raise ValueError("measure_break_even needs 'grid' among the kinds (the break-even is against the grid)")
+    if isinstance(rays, (int, np.integer)):
+        origins, directions = uniform_rays(mesh, int(rays), seed=seed)
+    else:
+        origins, directions = rays
+    _prepare(mesh)
+    warm_up(kinds, threads=threads, configs=configs)
+    last = {}
+
+    def job(kind):
+        def run():
+            cfg = dict((configs or {}).get(kind) or {})
+            if threads is not None:
+                cfg.setdefault("threads", threads)
+            last.pop(kind, None)  # free the previous structure before building the next
+            acc = build(mesh, kind, **cfg)
+            _, dt = time_trace(acc, origins, directions)
+            last[kind] = acc
+            return Measurement(float(acc.build_time), float(dt), int(len(origins)), int(acc.threads))
+        return run
+
+    runs = interleaved({k: job(k) for k in kinds}, repeats)
+    meas = {k: median_measurement(v) for k, v in runs.items()}
+    g = meas["grid"].per_ray
+    rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
+    rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
+              for k in kinds if k != "grid"}
+    return BreakEven(mesh.triangle_count, len(origins), meas, rc, max(1, int(repeats)), rc_rep, runs, last)
+
+
+def _grid_samples(mesh, ladder, threads, config, seed) -> dict[int, float]:
+    """The grid's time per ray on fresh uniform samples of each size in ``ladder`` (what a
+    plan's K-sample costs per ray).
+
+    Each sample is traced as ``plan`` traces it: first thing through a grid just built.
+    A grid's first traces can cost more than later ones (freshly allocated memory is
+    faulted in; measured up to 2x on 800k triangles), and a sample timed after the large
+    batch would miss that."""
+    from ..rays import uniform_rays
+
+    samples = {}
+    for k in ladder:
+        o, d = uniform_rays(mesh, int(k), seed=seed + int(k))
+        samples[int(k)] = measure(mesh, "grid", o, d, threads=threads, config=config).per_ray
+    return samples
+
+
+def sample_work(mesh, k: int, *, threads=None, config=None, seed=0) -> Work:
+    """The grid's per-ray work counts on K uniform sample rays, as ``plan`` counts them."""
+    from ..rays import uniform_rays
+
+    cfg = dict(config or {})
+    if threads is not None:
+        cfg.setdefault("threads", threads)
+    grid = build(mesh, "grid", **cfg)
+    o, d = uniform_rays(mesh, int(k), seed=seed)
+    return grid_work(grid, o, d, grid.trace(o, d).t)
+
+
+def median_measurement(runs) -> Measurement:
+    """Median build time and median trace time of repeated Measurements of one structure."""
+    return Measurement(float(np.median([m.build_time for m in runs])), float(np.median([m.trace_time for m in runs])),
+                       runs[0].rays, runs[0].threads)
+
+
+def _size_hint(factory) -> float:
+    """Expected work of a scene for the progress fraction: N log2 N of its size."""
+    if isinstance(factory, TriangleMesh):
+        return nlog2n(factory.triangle_count)
+    args = getattr(factory, "args", ())
+    n = args[0] if args and isinstance(args[0], (int, np.integer)) else 10000
+    return nlog2n(n)
+
+
+def calibrate(
+    scenes=None,
+    kinds=("bvh", "embree"),
+    *,
+    scale: str = "default",
+    rays_per_scene: int | None = None,
+    progress=None,
+    threads: int | None = None,
+    grid: bool = True,
+    configs: dict | None = None,
+    model: str = DEFAULT_MODEL,
+    spread=DEFAULT_SPREAD,
+    seed: int = 0,
+    sample_ladder=SAMPLE_LADDER,
+    repeats: int = CALIBRATION_REPEATS,
+    work_samples: int = WORK_SAMPLES,
+) -> Calibration:
+    """Measure every structure in ``kinds`` on each scene and fit the model.
+
+    scenes: (name, factory-or-TriangleMesh) pairs; default ``scenes.calibration_set(scale)``.
+    rays_per_scene: M, the paper's uniform random rays per scene (default by scale).
+    progress: ``callback(fraction in [0, 1], message)``, called before each structure.
+    threads: passed to every structure (None: each structure's default).
+    grid: also measure the grid per scene: its time per ray on the calibration rays and on
+    samples of each size in ``sample_ladder``, which give ``Calibration.grid_sample_ratio``
+    (the grid's constants are not fitted: a plan measures the grid on its own scene).
+    configs: optional {kind: config dict} passed to ``build``.
+    """
+    from .. import scenes as scene_lib
+    from ..rays import uniform_rays
+
+    t_start = time.perf_counter()
+    if scenes is None:
+        scenes = scene_lib.calibration_set(scale)
+    else:
+        scale = "custom"
+    scenes = list(scenes)
+    if not scenes:
+        raise ValueError("calibrate needs at least one scene")
+    m_rays = int(rays_per_scene or RAYS_PER_SCENE.get(scale, RAYS_PER_SCENE["default"]))
+    if m_rays < 1:
+        raise ValueError(f"rays_per_scene must be at least 1, got {m_rays}")
+    fitted, notes = available_kinds(kinds)
+    if not fitted:
+        raise ValueError(f"none of the structures {tuple(kinds)} can be built here: {'; '.join(notes)}")
+    measured = (("grid",) if grid and "grid" not in fitted else ()) + fitted
+    weights = np.array([_size_hint(f) for _, f in scenes])
+    done = np.concatenate([[0.0], np.cumsum(weights)]) / weights.sum()
+
+    def report(i, j, msg):
+        if progress is not None:
+            progress(float(done[i] + (done[i + 1] - done[i]) * j / len(measured)), msg)
+
+    warm_up(measured, threads=threads, configs=configs)
+
+    records = []
+    for i, (name, factory) in enumerate(scenes):
+        report(i, 0, f"scene {i + 1}/{len(scenes)}: generating {name}")
+        mesh = factory if isinstance(factory, TriangleMesh) else factory()
+        _prepare(mesh)
+        origins, directions = uniform_rays(mesh, m_rays, seed=seed + i)
+        rec = SceneRecord(name, mesh.triangle_count, m_rays)
+        jobs = {}
+        for j, kind in enumerate(measured):
+            report(i, j, f"scene {i + 1}/{len(scenes)}: {name} ({mesh.triangle_count:,} triangles), {kind}")
+            cfg = (configs or {}).get(kind)
+            if kind == "grid":
+                gseed = seed + 7919 * (i + 1)
+                rec.grid_samples = _grid_samples(mesh, sample_ladder, threads, cfg, gseed)
+                rec.work = sample_work(mesh, work_samples, threads=threads, config=cfg, seed=gseed + 1).to_dict()
+                go, gd = origins, directions
+                if sample_ladder and len(origins) < GRID_LARGE_RAYS:
+                    # the ratio needs a large workload's time per ray: the 'tiny' and 'quick'
+                    # scales' few rays per scene would themselves be a small batch
+                    go, gd = uniform_rays(mesh, GRID_LARGE_RAYS, seed=gseed)
+                jobs[kind] = (lambda go=go, gd=gd, cfg=cfg: measure(mesh, "grid", go, gd, threads=threads, config=cfg))
+            else:
+                jobs[kind] = (lambda kind=kind, cfg=cfg: measure(mesh, kind, origins, directions, threads=threads, config=cfg))
+        rec.kinds = {k: median_measurement(v) for k, v in interleaved(jobs, repeats).items()}
+        records.append(rec)
+        del mesh
+    fits = fit(records, fitted, model=model, spread=spread)
+    counts = fit_counts(records, ("grid",) + tuple(fitted), spread)
+    duration = time.perf_counter() - t_start
+    if progress is not None:
+        progress(1.0, f"calibrated {', '.join(fits)} on {len(records)} scenes in {duration:.1f} s")
+    return Calibration(
+        fits=fits, scenes=records, model=model, spread=tuple(spread), rays_per_scene=m_rays, scale=scale,
+        threads=threads, duration_s=duration, created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        source="measured", notes=notes, counts=counts,
+    )

@@ -1,0 +1,43 @@
+"""The plan's one decision rule: which structure to trace R rays with, given their costs.
+
+Hapala, Karlik and Havran (2011), section 3, step 5: keep the grid while R <= R*, else
+build H.  With several candidates this is the least total cost, the grid's build sunk:
+``R t_G`` for the grid against ``T_B^H + R t_H`` for each H, which is the same as
+"the grid while R <= min_H R*_H, else the cheapest H" (R t_G <= T_B + R t_H exactly when
+R <= T_B / (t_G - t_H)).  Ties go to the grid (nothing more to build), then to the first
+name in alphabetical order.
+
+When the plan's K samples are K of the workload's rays, their answers are kept by the
+structures in REUSES_SAMPLES, so those trace only the R - K others; every other
+structure retraces all R (``answered``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: structures that answer every ray bit for bit like the grid: a plan that drew its samples
+#: from the workload keeps their answers when it chooses one of these
+REUSES_SAMPLES = ("grid", "bvh")
+
+
+def costs(rays, grid_per_ray: float, candidates: dict, answered: int = 0) -> tuple[list[str], np.ndarray]:
+    """(names, costs): the grid first, then the candidates by name; ``costs[i, j]`` is the
+    predicted time of names[i] for rays[j], the grid's build excluded (it is sunk).
+
+    candidates: {kind: (build time, time per ray)}; answered: rays of the workload the
+    grid's samples have answered already."""
+    r = np.atleast_1d(np.asarray(rays, np.float64))
+    left = np.maximum(r - max(0, int(answered)), 0.0)
+    names = ["grid"] + sorted(candidates)
+    rows = [left * float(grid_per_ray)]
+    for k in names[1:]:
+        b, t = candidates[k]
+        rows.append(float(b) + (left if k in REUSES_SAMPLES else r) * float(t))
+    return names, np.stack(rows)
+
+
+def choose(rays, grid_per_ray: float, candidates: dict, answered: int = 0) -> np.ndarray:
+    """The structure (a name) with the least predicted cost for each ray count in ``rays``."""
+    names, c = costs(rays, grid_per_ray, candidates, answered)
+    return np.asarray(names, dtype=object)[np.argmin(c, axis=0)]

@@ -1,0 +1,247 @@
+"""Collect, per scene, the grid sample's work counts beside the true costs, for fitting and
+judging count-based cost models (issue 14).  Prints one line per scene, writes JSON.
+
+    flock /tmp/hrc-bench.lock .venv/bin/python scripts/counts_study.py --out out/counts.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _package import core_package  # noqa: E402
+
+core_package()
+
+from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
+import numpy as np  # noqa: E402
+
+from hybrid_raycast.core.decide import Calibration, Measurement, SceneRecord, fit  # noqa: E402
+from hybrid_raycast.core.decide.cost import fit_counts  # noqa: E402
+from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
+from hybrid_raycast.core.decide import available_kinds, measure_break_even, time_trace  # noqa: E402
+from hybrid_raycast.core.decide.work import grid_work  # noqa: E402
+from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def records(rows, kinds=("grid", "bvh", "embree")):
+    """The study's rows as calibration SceneRecords (medians as Measurements)."""
+    out = []
+    for r in rows:
+        n_rays = 1 << 17
+        kk = {k: Measurement(m["build"], m["per_ray"] * n_rays, n_rays) for k, m in r["meas"].items() if k in kinds}
+        out.append((r["group"], SceneRecord(r["name"], r["N"], n_rays, kk, {16384: float(np.median(r["sample"]))}, r["work"])))
+    return out
+
+
+GRID_TERMS = {"cells+refs": ("1", "cells", "refs"), "cells": ("1", "cells"), "refs": ("1", "refs")}
+HDS_TERMS = {"log2n": ("1", "log2n"), "log2n+hit": ("1", "log2n", "hit_log2n"),
+             "log2n+hit+length": ("1", "log2n", "hit_log2n", "length_log2n"),
+             "log2n+cells+refs": ("1", "log2n", "cells", "refs"), "cells+refs": ("1", "cells", "refs"),
+             "log2n+length": ("1", "log2n", "length_log2n"), "log2n+hit+len+refs": ("1", "log2n", "hit_log2n", "length_log2n", "refs")}
+
+
+def analyse(path, kind="bvh"):
+    recs = records(json.loads(Path(path).read_text()))
+    cal = [r for g, r in recs if g == "calibration"]
+    ev_ = [r for g, r in recs if g != "calibration"]
+    mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)])) if any(math.isfinite(x) for x in xs) else math.nan  # noqa: E731
+    print(f"{kind}: {len(cal)} calibration scenes, {len(ev_)} evaluated; median |error| in %: break-even (LOO on calibration / "
+          f"evaluated, fitted on all calibration), grid per-ray, {kind} per-ray")
+    rows = []
+    for gname, gt in [("sample x ratio", None)] + list(GRID_TERMS.items()):
+        for hname, ht in [("affine log2n", None)] + list(HDS_TERMS.items()):
+            kw = dict(kind=kind, grid="sample" if gt is None else "counts", hds="affine" if ht is None else "counts",
+                      terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")})
+            loo = rep.leave_one_out(cal, **kw)
+            held = rep.held_out_errors(cal, ev_, **kw)
+            rows.append((gname, hname, mabs([x["error"] for x in loo]), mabs([x["error"] for x in held]),
+                         mabs([x["grid_error"] for x in held]), mabs([x["per_ray_error"] for x in held]),
+                         sum(not math.isfinite(x["error"]) for x in held)))
+    print(f"{'grid':16s} {kind + ' per ray':20s} {'LOO':>7s} {'eval':>7s} {'t_G':>6s} {'t_H':>6s} undefined")
+    for r in rows:
+        print(f"{r[0]:16s} {r[1]:20s} {r[2]:7.1f} {r[3]:7.1f} {r[4]:6.1f} {r[5]:6.1f} {r[6]}")
+
+
+def _calibration(recs, model="affine"):
+    """A Calibration fitted on ``recs`` as ``calibrate()`` fits it (affine build and per-ray
+    constants, the count models of ``cost.COUNT_TERMS``)."""
+    kinds = tuple(k for k in ("bvh", "embree") if all(k in r.kinds for r in recs))
+    return Calibration(fit(recs, kinds, model=model), scenes=list(recs), model=model,
+                       counts=fit_counts(recs, ("grid",) + kinds), source="counts study")
+
+
+def evaluate(path, k_samples=16384, plans=5):
+    """The issue-14 goals from the study's measurements: models fitted on the calibration
+    scenes, judged on the evaluated meshes (break-even errors, picks, hybrid / oracle);
+    R_C's own spread over its interleaved repeats; constants fitted on each repeat alone
+    (three calibrations from independent timings); five plan() runs per evaluated mesh."""
+    rows = json.loads(Path(path).read_text())
+    recs = records(rows)
+    cal_recs = [r for g, r in recs if g == "calibration"]
+    cal = _calibration(cal_recs)
+    print(cal.describe())
+    kinds = tuple(cal.fits)
+    results = []
+    for row, (g, rec) in zip(rows, recs):
+        if g == "calibration":
+            continue
+        n = rec.triangles
+        t_g = cal.count_per_ray("grid", n, rec.work)[0]
+        est = {k: rep.Cost(cal.estimate(k, n).build, cal.count_per_ray(k, n, rec.work)[0]) for k in kinds}
+        meas = {k: rep.Cost(rec.kinds[k].build_time, rec.kinds[k].per_ray) for k in kinds}
+        cost_e = float(np.median(row["sample"])) * k_samples + row["work_time"]
+        s = rep.SceneResult(rec.name, n, rec.rays, rep.Cost(rec.kinds["grid"].build_time, rec.kinds["grid"].per_ray),
+                            meas, est, t_g, cost_e, k_samples, g,
+                            reuse_estimate_time=row["work_time"])
+        s.extra["R_C_repeats"] = row["R_C_repeats"]
+        results.append(s)
+    mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)]))  # noqa: E731
+    for k in kinds:
+        errs = [rep.relative_error(rep.estimated_break_even(s, k), rep.true_break_even(s, k)) for s in results]
+        spread = []
+        for s in results:
+            v = [x for x in s.extra["R_C_repeats"].get(k, []) if x is not None and math.isfinite(x)]
+            if len(v) >= 2:
+                spread.append(100 * (max(v) - min(v)) / float(np.median(v)))
+        e = rep.error_summary(errs)
+        print(f"vs {k}: median |error| {e['median_abs']:.1f}% over {e['defined']} of {e['scenes']} scenes "
+              f"({rep.never_agreement([(rep.estimated_break_even(s, k), rep.true_break_even(s, k)) for s in results])}); "
+              f"R_C's own spread over its repeats: median {np.median(spread):.1f}%")
+        for s, x in zip(results, errs):
+            v = s.extra["R_C_repeats"].get(k, [])
+            print(f"   {s.name:20s} R_C {rep.true_break_even(s, k):12,.0f} R_est {rep.estimated_break_even(s, k):12,.0f} "
+                  f"error {x:+7.1f}%  R_C repeats {', '.join(f'{y:,.0f}' for y in v)}")
+    pk = rep.pick_accuracy(results)
+    sp = rep.speedup_summary(results)
+    calls = []
+    for s in results:
+        t = rep.strategy_totals(s, rep.RAY_COUNTS, ("bvh",), "bvh", batch=1000)
+        calls += list(t["online"] / t["oracle"])
+    print(f"correct picks (grid vs numpy BVH, > 10% apart): {pk['percent']:.1f}% ({pk['correct']}/{pk['considered']})")
+    print(f"hybrid / oracle, median (90th pct): (i) separate samples {sp['hybrid_over_oracle']['median']:.3f} "
+          f"({sp['hybrid_over_oracle']['p90']:.3f}); (ii) samples from the workload {sp['hybrid_reuse_over_oracle']['median']:.3f} "
+          f"({sp['hybrid_reuse_over_oracle']['p90']:.3f}); online batches of 32k {sp['online_over_oracle']['median']:.3f}; "
+          f"calls of 1,000 rays with ski rental across calls {np.median(calls):.3f} (max {max(calls):.2f})")
+    # constants from each repeat alone: what two calibrations in a row would give
+    fits = []
+    for r in range(3):
+        rr = []
+        for row, (g, rec) in zip(rows, recs):
+            if g != "calibration":
+                continue
+            kk = {k: Measurement(v[r][0], v[r][1] * rec.rays, rec.rays) for k, v in row["runs"].items() if k in rec.kinds}
+            rr.append(SceneRecord(rec.name, rec.triangles, rec.rays, kk, rec.grid_samples, rec.work))
+        fits.append(_calibration(rr))
+    print("calibrations fitted on each repeat's timings alone (1 vs 2, 1 vs 3, 2 vs 3): largest difference of the "
+          "per-ray times and builds they predict on the evaluated meshes, and of their break-evens")
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        ca, cb = fits[a], fits[b]
+        worst, bes = {}, []
+        for g, rec in recs:
+            if g == "calibration":
+                continue
+            n = rec.triangles
+            for k in ("grid",) + kinds:
+                pa, pb = ca.count_per_ray(k, n, rec.work)[0], cb.count_per_ray(k, n, rec.work)[0]
+                worst[k] = max(worst.get(k, 0.0), 200 * abs(pa - pb) / (pa + pb))
+            for k in kinds:
+                pa, pb = ca.estimate(k, n).build, cb.estimate(k, n).build
+                worst[k + " build"] = max(worst.get(k + " build", 0.0), 200 * abs(pa - pb) / (pa + pb))
+            ra = rep.break_even(ca.estimate("bvh", n).build, ca.count_per_ray("grid", n, rec.work)[0],
+                                ca.count_per_ray("bvh", n, rec.work)[0])
+            rb = rep.break_even(cb.estimate("bvh", n).build, cb.count_per_ray("grid", n, rec.work)[0],
+                                cb.count_per_ray("bvh", n, rec.work)[0])
+            if math.isfinite(ra) and math.isfinite(rb):
+                bes.append(max(ra, rb) / min(ra, rb))
+        print(f"   {a + 1} vs {b + 1}: " + ", ".join(f"{k} {v:.1f}%" for k, v in worst.items())
+              + f"; break-even max/min median {np.median(bes):.3f} (max {max(bes):.2f})")
+    if plans:
+        from hybrid_raycast.core import plan as make_plan
+
+        ratios = []
+        for name, group, make in scene_list():
+            if group == "calibration":
+                continue
+            mesh = make()
+            be = [make_plan(mesh, 1e6, cal, kinds=("grid",) + kinds, seed=s).candidates["bvh"].break_even for s in range(plans)]
+            fin = [x for x in be if math.isfinite(x)]
+            ratios.append(max(fin) / min(fin) if len(fin) == len(be) else (1.0 if not fin else math.inf))
+            print(f"   {name:20s} {plans} plan() runs: break-evens {', '.join(f'{x:,.0f}' for x in be)}", flush=True)
+        print(f"{plans} plan() runs per evaluated mesh (one calibration, other sample rays each run): max/min median "
+              f"{np.median(ratios):.3f}, max {max(ratios):.3f}, {sum(r <= 1.2 for r in ratios)}/{len(ratios)} within 1.2")
+
+
+def scene_list(scale="default", subdivide="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3"):
+    todo = [(n, "calibration", f) for n, f in scene_lib.calibration_set(scale)]
+    folder = ROOT.parent / "shared" / "scenes"
+    for p in sorted(folder.glob("*.obj")):
+        todo.append((p.stem, "real", (lambda p=p: load_obj(p))))
+    for spec in filter(None, subdivide.split(",")):
+        stem, lv = spec.split(":")
+
+        def make(stem=stem, lv=int(lv)):
+            m = load_obj(folder / f"{stem}.obj")
+            for _ in range(lv):
+                m = scene_lib.subdivide(m)
+            return m
+        todo.append((f"{stem}-x{4 ** int(lv)}", "subdivided", make))
+    return todo
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", default=str(ROOT / "out" / "counts.json"))
+    ap.add_argument("--rays", type=int, default=1 << 17)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--samples", type=int, default=16384)
+    ap.add_argument("--scale", default="default")
+    ap.add_argument("--analyse", default="", help="print the held-out errors of the count models on a saved JSON")
+    ap.add_argument("--kind", default="bvh")
+    ap.add_argument("--evaluate", default="", help="print the issue-14 goals from a saved JSON (no timing)")
+    ap.add_argument("--plans", type=int, default=5)
+    ap.add_argument("--subdivide", default="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3")
+    args = ap.parse_args(argv)
+    if args.analyse:
+        return analyse(args.analyse, args.kind)
+    if args.evaluate:
+        return evaluate(args.evaluate, plans=args.plans)
+    kinds, _ = available_kinds(("grid", "bvh", "embree"))
+    todo = scene_list(args.scale, args.subdivide)
+    rows = []
+    print(f"load {os.getloadavg()}", flush=True)
+    for name, group, make in todo:
+        mesh = make()
+        be = measure_break_even(mesh, args.rays, kinds, repeats=args.repeats, seed=1)
+        g = be.structures["grid"]
+        sample = []
+        for r in range(3):  # the sample's time, three fresh samples (its noise, for comparison)
+            o, d = uniform_rays(mesh, args.samples, seed=100 + r)
+            h, dt = time_trace(g, o, d)
+            sample.append(dt / len(o))
+        t0 = time.perf_counter()
+        w = grid_work(g, o, d, h.t)
+        wt = time.perf_counter() - t0
+        row = {"name": name, "group": group, "N": mesh.triangle_count, "work": w.to_dict(), "work_time": wt,
+               "sample": sample, "R_C": be.R_C, "R_C_repeats": be.R_C_repeats,
+               "meas": {k: {"build": m.build_time, "per_ray": m.per_ray} for k, m in be.measurements.items()},
+               "runs": {k: [[m.build_time, m.per_ray] for m in v] for k, v in be.runs.items()}}
+        rows.append(row)
+        print(f"{name:22s} N {mesh.triangle_count:8d} cells {w.cells:6.1f} refs {w.refs:7.1f} hit {w.hit:.2f} len {w.length:.2f}"
+              f"  t_G {row['meas']['grid']['per_ray'] * 1e6:5.2f} sample {sample[0] * 1e6:5.2f} t_H {row['meas']['bvh']['per_ray'] * 1e6:5.2f}"
+              f"  B_H {row['meas']['bvh']['build'] * 1e3:7.1f} ms  work {wt * 1e3:.0f} ms", flush=True)
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(rows, default=float))
+    print(f"load {os.getloadavg()}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

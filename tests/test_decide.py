@@ -1,0 +1,195 @@
+"""The cost model's arithmetic and the one decision rule (core/decide), on exact numbers.
+
+The break-even formula and the rule are each written once (``cost.break_even``,
+``rule.choose``); the plan and the evaluation call them, so these tests check the one
+copy against hand-worked figures rather than keeping copies equal.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hybrid_raycast.core.decide import cost, rule
+from hybrid_raycast.core.decide import evaluate as ev
+from hybrid_raycast.core.plan import plan_from_timings
+from hybrid_raycast.core.decide import Calibration, KindFit
+
+
+def test_break_even_is_build_over_the_per_ray_gain_and_never_when_the_grid_is_not_slower():
+    assert cost.break_even(0.5, 3e-6, 1e-6) == pytest.approx(250_000.0, rel=1e-12)  # 0.5 / 2e-6
+    assert math.isinf(cost.break_even(0.5, 1e-6, 1e-6))
+    assert math.isinf(cost.break_even(0.5, 1e-6, 2e-6))
+    assert cost.break_even(0.0, 2e-6, 1e-6) == 0.0
+
+
+def test_choose_is_the_least_cost_with_the_grid_build_sunk():
+    # grid 4 us/ray; bvh: 0.1 s + 1 us/ray (R* = 0.1 / 3e-6 = 33,333); embree: 0.3 s + 0.5 us/ray
+    # (R* = 0.3 / 3.5e-6 = 85,714).  bvh vs embree: 0.1 + 1e-6 R = 0.3 + 5e-7 R at R = 400,000.
+    cands = {"bvh": (0.1, 1e-6), "embree": (0.3, 5e-7)}
+    got = rule.choose([1_000, 33_333, 33_334, 399_999, 400_001, 1e7], 4e-6, cands)
+    assert list(got) == ["grid", "grid", "bvh", "bvh", "embree", "embree"]
+
+
+def test_choose_breaks_ties_towards_the_grid_then_the_first_name():
+    # powers of two, so both totals are exact in binary and tie exactly at R* = 512
+    t_g, b, t = 2.0 ** -18, 2.0 ** -10, 2.0 ** -19  # R* = 2^-10 / 2^-19 = 512
+    assert rule.choose([512], t_g, {"bvh": (b, t)})[0] == "grid"
+    assert rule.choose([513], t_g, {"bvh": (b, t)})[0] == "bvh"
+    assert rule.choose([1e6], t_g, {"bvh": (b, t), "embree": (b, t)})[0] == "bvh"
+
+
+def test_choose_with_answered_samples_weighs_the_rays_left_and_embree_retraces_all():
+    # 1,000 rays answered: grid costs (R - 1000) t_G, the numpy BVH T_B + (R - 1000) t_H,
+    # Embree T_B + R t_E
+    cands = {"bvh": (0.02, 1e-6), "embree": (0.0, 3.5e-6)}
+    names, c = rule.costs([5_000], 4e-6, cands, answered=1000)
+    assert names == ["grid", "bvh", "embree"]
+    assert c[:, 0] == pytest.approx([0.016, 0.024, 0.0175], rel=1e-12)
+    assert rule.choose([5_000], 4e-6, cands, answered=1000)[0] == "grid"
+    assert rule.choose([5_000], 4e-6, cands, answered=0)[0] == "embree"  # 0.02 > 0.0175
+    assert rule.choose([800], 4e-6, {"bvh": (0.0, 1e-6)}, answered=1000)[0] == "grid"  # nothing left to trace
+
+
+def test_plan_and_evaluation_decide_through_the_one_rule():
+    """The plan's decision and the evaluation's hybrid are the rule applied to their figures
+    (hand numbers: N = 1024, bvh 0.1024 s + 0.5 us/ray, grid 2 us/ray: R* = 68,266.7)."""
+    n = 1024
+    cal = Calibration({"bvh": KindFit(1e-5, 5e-8, 1e-5, 1e-5, 5e-8, 5e-8, 1)}, source="hand")
+    e = cal.estimate("bvh", n)
+    assert (e.build, e.per_ray) == pytest.approx((0.1024, 5e-7), rel=1e-12)
+    s = ev.SceneResult("s", n, 1, ev.Cost(0.01, 2e-6), {"bvh": ev.Cost(e.build, e.per_ray)},
+                       {"bvh": ev.Cost(e.build, e.per_ray)}, 2e-6, 0.0, 4096)
+    for r, want in ((68_266, "grid"), (68_267, "bvh")):
+        assert plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh")).chosen == want
+        assert ev.hybrid_choice(s, [r])[0] == want
+    assert ev.hybrid_reuse_choice(s, [68_267])[0] == "grid"  # 4,096 answered: 64,171 left < R*
+    assert ev.hybrid_reuse_choice(s, [68_267 + 4096])[0] == "bvh"
+
+
+def test_affine_model_estimates_on_exact_numbers():
+    f = KindFit(2e-8, 1e-7, 1e-8, 4e-8, 5e-8, 2e-7, 3, extra={"a_B": 1e-3, "a_R": 2e-7})
+    e = cost.MODELS["affine"][1](f, "bvh", 1 << 16)  # N log2 N = 65536 * 16 = 1,048,576
+    assert (e.build, e.build_low, e.build_high) == pytest.approx((1e-3 + 2e-8 * 1048576, 1e-3 + 1e-8 * 1048576,
+                                                                  1e-3 + 4e-8 * 1048576), rel=1e-12)
+    assert (e.per_ray, e.per_ray_low, e.per_ray_high) == pytest.approx((2e-7 + 1.6e-6, 2e-7 + 8e-7, 2e-7 + 3.2e-6), rel=1e-12)
+
+
+def test_interleaved_rotates_the_order_each_round_and_keeps_each_jobs_results_in_order():
+    from hybrid_raycast.core.decide.measurements import interleaved
+
+    log = []
+    jobs = {k: (lambda k=k: log.append(k) or len(log)) for k in ("a", "b", "c")}
+    out = interleaved(jobs, 3)
+    assert log == ["a", "b", "c", "b", "c", "a", "c", "a", "b"]
+    assert out == {"a": [1, 6, 8], "b": [2, 4, 9], "c": [3, 5, 7]}
+
+
+def test_measure_break_even_takes_medians_of_the_repeats_and_reports_their_spread():
+    from hybrid_raycast.core import scenes as S
+    from hybrid_raycast.core.decide import measure_break_even
+
+    be = measure_break_even(S.torus(2000), 3000, kinds=("grid", "bvh"), repeats=3)
+    for k in ("grid", "bvh"):
+        runs = be.runs[k]
+        assert len(runs) == 3
+        assert be.measurements[k].build_time == float(np.median([m.build_time for m in runs]))
+        assert be.measurements[k].trace_time == float(np.median([m.trace_time for m in runs]))
+    g, h = be.measurements["grid"], be.measurements["bvh"]
+    assert be.R_C["bvh"] == cost.break_even(h.build_time, g.per_ray, h.per_ray)
+    reps = [cost.break_even(b.build_time, a.per_ray, b.per_ray) for a, b in zip(be.runs["grid"], be.runs["bvh"])]
+    assert be.R_C_repeats["bvh"] == reps
+    fin = [x for x in reps if math.isfinite(x)]
+    if len(fin) >= 2:
+        assert be.repeatability("bvh") == pytest.approx(100 * (max(fin) - min(fin)) / np.median(fin))
+    assert set(be.structures) == {"grid", "bvh"}
+
+
+# -- the count model (issue 14) -------------------------------------------------------------------
+
+def test_grid_work_counts_cells_and_references_on_a_hand_grid():
+    """A 4 x 1 x 1 grid of unit cells holding 1, 2, 0, 3 references; rays along +x from
+    x = -1.  A miss crosses all four cells (16 points, 4 per cell: mean 1.5 references); a
+    hit at x = 1.5 stops in the second cell (11 points in the first, 5 in the second)."""
+    from types import SimpleNamespace
+
+    from hybrid_raycast.core.decide.work import grid_work
+
+    g = SimpleNamespace(lo=np.zeros(3), cell_size=np.ones(3), res=np.array([4, 1, 1]),
+                        cell_start=np.array([0, 1, 3, 3, 6]))
+    o = np.array([[-1.0, 0.5, 0.5], [-1.0, 0.5, 0.5]])
+    d = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    w = grid_work(g, o[:1], d[:1], np.array([np.inf]))
+    assert (w.cells, w.refs, w.hit) == (4.0, 6.0, 0.0)
+    assert w.length == pytest.approx(4 / math.sqrt(18), rel=1e-12)
+    w = grid_work(g, o[1:], d[1:], np.array([2.5]))
+    assert (w.cells, w.refs, w.hit) == (2.0, 2 * 21 / 16, 1.0)
+    both = grid_work(g, o, d, np.array([np.inf, 2.5]))
+    assert (both.cells, both.refs, both.hit) == (3.0, (6 + 2 * 21 / 16) / 2, 0.5)
+
+
+def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
+    rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, 1e-7 + 2e-8 * c + 5e-9 * f)
+            for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
+    f = cost.CountFit.fit(rows, ("1", "cells", "refs"))
+    assert f.coef == pytest.approx((1e-7, 2e-8, 5e-9), rel=1e-9)
+    assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
+    assert f.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
+    t = cost.terms(1 << 10, {"cells": 3, "refs": 4, "hit": 0.25, "length": 0.5})
+    assert (t["log2n"], t["hit_log2n"], t["length_log2n"]) == (10.0, 2.5, 5.0)
+
+
+def test_nonneg_fit_drops_a_term_that_would_be_negative():
+    x = np.array([[1, 1.0], [1, 2.0], [1, 3.0]])
+    y = np.array([3.0, 2.0, 1.0])  # falling with x: the slope would be negative
+    b = cost.nonneg_relative_lsq(x, y)
+    assert b[1] == 0.0 and b[0] > 0
+
+
+def test_a_plan_with_a_count_model_repeats_exactly_and_uses_the_counts():
+    from hybrid_raycast.core import plan, scenes as S
+
+    cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                      counts={"grid": cost.CountFit(("1", "cells", "refs"), (1e-7, 3e-8, 2e-8), 0.8, 1.25, 5),
+                              "bvh": cost.CountFit(("1", "log2n"), (2e-7, 1e-7), 0.9, 1.1, 5)})
+    mesh = S.torus(3000)
+    plans = [plan(mesh, 1e6, cal, samples=2000, seed=3) for _ in range(5)]
+    w = plans[0].work
+    g = 1e-7 + 3e-8 * w["cells"] + 2e-8 * w["refs"]
+    assert plans[0].grid_per_ray == pytest.approx(g, rel=1e-12)
+    assert plans[0].candidates["grid"].per_ray_low == pytest.approx(0.8 * g, rel=1e-12)
+    assert plans[0].candidates["bvh"].per_ray == pytest.approx(2e-7 + 1e-7 * math.log2(mesh.triangle_count), rel=1e-12)
+    assert len({p.break_even for p in plans}) == 1 and len({p.grid_per_ray for p in plans}) == 1
+    assert plans[0].to_dict()["work"] == w
+
+
+def test_count_model_survives_save_and_load(tmp_path):
+    from hybrid_raycast.core.decide import load
+
+    cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+    back = load(cal.save(tmp_path / "c.json"))
+    assert back.counts == cal.counts
+
+
+def test_a_plan_says_which_candidates_are_missing_and_why(monkeypatch):
+    from hybrid_raycast.core import embree, plan, scenes as S
+
+    monkeypatch.setattr(embree, "embree_available", lambda: False)
+    cal = Calibration({"embree": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand")
+    p = plan(S.torus(500), 1e6, cal, samples=200)
+    assert set(p.candidates) == {"grid"}
+    assert set(p.unavailable) == {"bvh", "embree"}
+    assert "no calibration constants" in p.unavailable["bvh"] and p.unavailable["embree"]
+    assert p.to_dict()["unavailable"] == p.unavailable
+
+
+def test_the_compatibility_modules_name_the_one_home():
+    """core.calibration and core.report only re-export core.decide (other code imports them)."""
+    from hybrid_raycast.core import calibration, decide, report
+
+    assert calibration.calibrate is decide.calibrate and calibration.Calibration is decide.Calibration
+    assert calibration.break_even is cost.break_even and report.break_even is cost.break_even
+    assert report.hybrid_choice is ev.hybrid_choice
