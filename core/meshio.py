@@ -14,7 +14,6 @@ import errno
 import hashlib
 import io
 import os
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .mesh import TriangleMesh
 
 FORMAT = "hybrid_raycast.scene"
@@ -72,19 +72,11 @@ def save_mesh(mesh: TriangleMesh, path, *, frame: int | None = None) -> Path:
         arrays["polygon_index"] = mesh.polygon_index
     if frame is not None:
         arrays["frame"] = np.array(int(frame), np.int64)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
     return path
 
 

@@ -22,13 +22,12 @@ mid-frame leaves the finished frames complete and no half-written file.
 from __future__ import annotations
 
 import datetime
-import os
 import struct
-import tempfile
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import atomic_path
 
 __all__ = ["FIELDS", "FORMATS", "write", "write_ply", "write_las", "write_npz", "LAS_SCALE"]
 
@@ -57,26 +56,6 @@ def _checked(fields: dict) -> tuple[dict, int]:
     return out, n
 
 
-@contextmanager
-def _atomic(path):
-    """Yield a temporary path beside ``path``; rename it to ``path`` only if the block ends."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def write_ply(path, fields: dict, object_names) -> Path:
     f, n = _checked(fields)
     dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("range", "<f4"), ("intensity", "<f4"),
@@ -96,7 +75,7 @@ def write_ply(path, fields: dict, object_names) -> Path:
         lines.append(f"property {plytype[dtype[name].str[1:]]} {name}")
     lines.append("end_header")
     header = ("\n".join(lines) + "\n").encode("utf-8")
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(header)
             fh.write(rec.tobytes())
@@ -109,7 +88,7 @@ def _one_line(name) -> str:
 
 def write_npz(path, fields: dict, object_names) -> Path:
     f, _ = _checked(fields)
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, object_names=np.asarray([str(x) for x in object_names], dtype=str), **f)
     return Path(path)
@@ -191,7 +170,7 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
         maxs[0], mins[0], maxs[1], mins[1], maxs[2], mins[2],
         0, 0, 0, n, n, *([0] * 14))
     assert len(header) == _HEADER_SIZE
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(header)
             fh.write(vlrs)

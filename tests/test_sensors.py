@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from hybrid_raycast.core import pointcloud, sensors
+from hybrid_raycast.core import atomic, pointcloud, sensors
 
 plyfile = pytest.importorskip("plyfile", reason="plyfile (test-only) is not installed")
 laspy = pytest.importorskip("laspy", reason="laspy (test-only) is not installed")
@@ -213,7 +213,7 @@ def test_an_interrupted_write_leaves_the_old_file_and_no_partial_file(tmp_path):
     pointcloud.write_ply(path, _fields(seed=1), NAMES)
     before = path.read_bytes()
     with pytest.raises(KeyboardInterrupt):
-        with pointcloud._atomic(path) as tmp:
+        with atomic.atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 fh.write(b"ply\nhalf")
             raise KeyboardInterrupt

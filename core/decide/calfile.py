@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord
 
 #: bump when the JSON layout or the meaning of a field changes
@@ -235,9 +236,8 @@ class Calibration:
         """Write JSON to ``path`` (atomically: a temporary file, then a rename)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(self.to_json(), encoding="utf-8")
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            Path(tmp).write_text(self.to_json(), encoding="utf-8")
         return path
 
 
