@@ -69,7 +69,7 @@ from ..settings import RAYS_MAX
 from . import calibrate as calibrate_mod
 from .analyze import analysis_job, apply_analysis, results_json
 from .calibrate import apply_calibration, calibration_job
-from .jobs import BadInput, HRCError, Job, Unwritable, run_sync
+from .jobs import BadInput, HRCError, Job, Unwritable, run_sync, writable_dir
 from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
@@ -262,16 +262,6 @@ def main(argv, stdout=None, stderr=None, *, blender_argv=None, keep_stdout_on_st
         calibrate_mod.CALIBRATION_PATH = saved_path
 
 
-def _writable_dir(path: Path, what: str) -> Path:
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise Unwritable(f"unwritable path: cannot create {what} {path}: {e.strerror or e}") from None
-    if not os.access(path, os.W_OK):
-        raise Unwritable(f"unwritable path: {what} {path} is not writable")
-    return path
-
-
 def _json_target(args) -> Path | None:
     if args.json == "-":
         return None
@@ -279,7 +269,7 @@ def _json_target(args) -> Path | None:
         p = Path(args.json)
         if p.is_dir():
             raise Unwritable(f"unwritable path: --json {p} is a folder")
-        _writable_dir(p.parent if str(p.parent) else Path("."), "the folder of --json")
+        writable_dir(p.parent if str(p.parent) else Path("."), "the folder of --json")
         if p.exists() and not os.access(p, os.W_OK):
             raise Unwritable(f"unwritable path: --json {p} is not writable")
         return p
@@ -381,7 +371,7 @@ def _save_target(args) -> Path | None:
         raise BadInput(f"bad arguments: --save {path}: not a .blend path")
     if path.is_dir():
         raise Unwritable(f"unwritable path: --save {path} is a folder")
-    _writable_dir(path.parent if str(path.parent) else Path("."), "the folder of --save")
+    writable_dir(path.parent if str(path.parent) else Path("."), "the folder of --save")
     if path.exists() and not os.access(path, os.W_OK):
         raise Unwritable(f"unwritable path: --save {path} is not writable")
     return path.resolve()
@@ -413,7 +403,7 @@ def _passes_json() -> dict:
 
 
 def _run(args, stdout, write_json, stderr=None) -> int:
-    out_dir = _writable_dir(Path(args.output), "--output") if args.output else None
+    out_dir = writable_dir(Path(args.output), "--output") if args.output else None
     json_path = _json_target(args)
     if args.command == "calibrate":
         if args.save is not None:

@@ -19,8 +19,10 @@ Failures are ``HRCError`` subclasses whose ``str`` is a one-line reason and whos
 
 from __future__ import annotations
 
+import os
 import threading
 import traceback
+from pathlib import Path
 
 import bpy
 
@@ -43,6 +45,21 @@ class NoGeometry(HRCError):
 
 class Unwritable(HRCError):
     code = 4
+
+
+def writable_dir(path, what: str) -> Path:
+    """``path`` as a folder that exists (created if missing) and can be written; Unwritable otherwise.
+
+    ``what`` names it in the one-line message (e.g. "--output", "the output folder").
+    """
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise Unwritable(f"unwritable path: cannot create {what} {path}: {e.strerror or e}") from None
+    if not os.access(path, os.W_OK):
+        raise Unwritable(f"unwritable path: {what} {path} is not writable")
+    return path
 
 
 class InvalidGeometry(HRCError):

@@ -23,7 +23,6 @@ ASPRS classes: 2 ground, 6 building, ...) classifies every point on it; 1
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +32,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 
 from ..core import pointcloud, sensors
 from . import session
-from .jobs import BadInput, Job, JobOperator, Unwritable
+from .jobs import BadInput, Job, JobOperator, Unwritable, writable_dir
 
 SPACES = ("WORLD", "SENSOR")
 #: the per-object custom property that sets the LAS classification of its points
@@ -342,14 +341,7 @@ def output_folder(directory) -> Path:
             raise BadInput(f"the output folder {text!r} is relative to the .blend file, which is not saved; "
                            "save the file or choose an absolute folder")
         text = bpy.path.abspath(text)
-    path = Path(text)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise Unwritable(f"unwritable path: cannot create the output folder {path}: {e.strerror or e}") from None
-    if not os.access(path, os.W_OK):
-        raise Unwritable(f"unwritable path: the output folder {path} is not writable")
-    return path
+    return writable_dir(text, "the output folder")
 
 
 def file_name(ob, frame: int, fmt: str) -> str:
