@@ -252,8 +252,15 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         items=(("NONE", "None", "No candidate beats the grid"), ("BVH", "BVH", ""), ("EMBREE", "Embree", "")),
         default="NONE")
     grid_build_time: _time("Grid Build", "Measured build time of the uniform grid")
-    grid_per_ray: _time("Grid per Ray", "Grid time per ray on a large workload: the sample rays' measured time "
-                        "times the calibrated batch ratio")
+    grid_per_ray: _time("Grid per Ray", "Grid time per ray on a large workload: from the sample rays' work counts "
+                        "(cells, references) with the calibrated count model, or else their measured time times the "
+                        "calibrated batch ratio")
+    grid_cells_per_ray: FloatProperty(
+        name="Cells per Ray", description="Grid cells a sample ray steps through, on average (0 when the estimate "
+        "came from the sample's time instead of its work counts)", min=0.0, precision=1)
+    grid_refs_per_ray: FloatProperty(
+        name="References per Ray", description="Triangle references in those cells, on average (0 when the estimate "
+        "came from the sample's time)", min=0.0, precision=1)
     samples_traced: IntProperty(name="Samples Traced", description="Sample rays the grid's time per ray comes from", min=0)
     grid_sample_ratio: FloatProperty(
         name="Batch Ratio", description="Calibrated ratio of the grid's time per ray on a large workload to its time "

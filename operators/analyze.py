@@ -105,6 +105,9 @@ def store_results(props, record):
     props.grid_per_ray = st["grid"]["per_ray"]
     props.samples_traced = record["plan"]["samples"]
     props.grid_sample_ratio = record["plan"].get("grid_sample_ratio", 1.0)
+    work = record["plan"].get("work") or {}
+    props.grid_cells_per_ray = work.get("cells", 0.0)
+    props.grid_refs_per_ray = work.get("refs", 0.0)
     for kind in ("bvh", "embree"):
         c = st.get(kind)
         setattr(props, f"{kind}_considered", c is not None)

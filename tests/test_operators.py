@@ -46,6 +46,11 @@ def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     # the large-workload estimate is the sample's time times the calibrated batch ratio
     assert 0 < p.grid_sample_ratio == pytest.approx(rec["plan"]["grid_sample_ratio"], rel=1e-6)
     assert p.grid_per_ray == pytest.approx(rec["plan"]["grid_sample_per_ray"] * rec["plan"]["grid_sample_ratio"], rel=1e-5)
+    # the sidebar says which estimate it shows: the sample's work counts (shipped calibration) or its time
+    work = rec["plan"].get("work")
+    assert work is not None, "the shipped calibration holds count models, so the plan estimates from counts"
+    assert p.grid_cells_per_ray == pytest.approx(work["cells"], rel=1e-6) and p.grid_cells_per_ray > 0
+    assert p.grid_refs_per_ray == pytest.approx(work["refs"], rel=1e-6)
     assert rec["summary"]["triangles"] == p.triangle_count
 
 

@@ -144,7 +144,11 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
             return
         col = layout.column(align=True)
         col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
-        col.label(text=f"  (from {props.samples_traced:,} sample rays x {props.grid_sample_ratio:.2f} batch ratio)")
+        if props.grid_cells_per_ray > 0:
+            col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: "
+                           f"{props.grid_cells_per_ray:.1f} cells, {props.grid_refs_per_ray:.1f} refs/ray)")
+        else:
+            col.label(text=f"  (from {props.samples_traced:,} sample rays x {props.grid_sample_ratio:.2f} batch ratio)")
         if props.bvh_considered:
             col.label(text=f"BVH (est.): build {_secs(props.bvh_build_time)}, {_secs(props.bvh_per_ray)}/ray")
         if props.embree_considered:
