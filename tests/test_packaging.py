@@ -71,6 +71,20 @@ def test_pyproject_carries_the_manifest_version_and_the_zip_leaves_build_files_o
     assert any("dask" in r for r in project["project"]["optional-dependencies"]["dask"])
 
 
+def test_pyproject_lists_every_subpackage_that_ships():
+    """setuptools installs only the packages pyproject names (the root is mapped to hybrid_raycast),
+    so a new subpackage missing from the list breaks `pip install .` at import time."""
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    skip = {"tests", "scripts", "docs", "wheels", "out", "dist", "build"}
+    found = {"hybrid_raycast"} | {
+        "hybrid_raycast." + ".".join(p.parent.relative_to(ROOT).parts)
+        for p in ROOT.rglob("__init__.py")
+        if p.parent != ROOT and p.parent.relative_to(ROOT).parts[0] not in skip
+        and not p.parent.relative_to(ROOT).parts[0].startswith(".")
+    }
+    assert found == listed, f"packages to add to pyproject: {sorted(found - listed)}; listed but absent: {sorted(listed - found)}"
+
+
 @pytest.mark.slow
 def test_pip_install_gives_the_core_in_a_fresh_venv_without_blender(tmp_path):
     src = tmp_path / "checkout"
