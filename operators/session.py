@@ -86,6 +86,7 @@ def fingerprint(depsgraph, selected_only: bool = False) -> tuple[tuple, tuple]:
             visible = selected = None
         coll = idb.instance_collection
         body.append((orig.as_pointer(), orig.name, idb.type, data.session_uid if data is not None else 0,
+                     EDITS.get(orig.as_pointer(), 0),
                      idb.matrix_world.copy(), visible, selected, orig.hide_render, orig.show_instancer_for_render,
                      idb.instance_type, coll.as_pointer() if coll is not None else 0))
     return head, tuple(body)
@@ -359,8 +360,25 @@ def adopt_own_write(scene, view_layer, before):
         ANALYSED[scene_ptr] = (seen[0], seen[1], fingerprint(depsgraph, seen[1])[1])
 
 
+#: original object pointer -> geometry updates seen.  Blender 5.0 gives an evaluated mesh a
+#: new session_uid on every re-evaluation, but bpy 5.3 updates the evaluated copy of a mesh
+#: without modifiers in place (same session_uid) after an edit of its data (a vertex moved,
+#: a UV map added; tests/test_api_session.py and test_operators.py on the matrix's bpy-5.3
+#: leg), so the fingerprint also counts the geometry updates the depsgraph reports.
+EDITS: dict[int, int] = {}
+
+
+def _count_edits(depsgraph):
+    for u in depsgraph.updates:
+        idb = u.id
+        if isinstance(idb, _OBJECT) and u.is_updated_geometry:
+            k = idb.original.as_pointer()
+            EDITS[k] = EDITS.get(k, 0) + 1
+
+
 @persistent
 def on_depsgraph_update(scene, depsgraph):
+    _count_edits(depsgraph)
     if _adopting:
         return
     seen = ANALYSED.get(scene.as_pointer())
@@ -381,6 +399,7 @@ def on_load_post(*_args):
 def clear():
     SESSIONS.clear()
     ANALYSED.clear()
+    EDITS.clear()
 
 
 _HANDLERS = (
