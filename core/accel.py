@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .hits import Hits
-from .intersect import Rays, prepare_rays
+from .intersect import Rays, prepare_rays, shear_rays
 from .mesh import TriangleMesh
 
 def default_threads() -> int:
@@ -58,7 +58,7 @@ class Accel:
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Nearest hit per ray with tmin < t <= tmax; an exact tie in t goes to the lowest
         triangle index; both faces are hit (the hit convention, ../shared/DESIGN.md)."""
-        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=False)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return Hits.empty(m)
@@ -67,16 +67,28 @@ class Accel:
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some triangle is hit with tmin < t <= tmax."""
-        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=False)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return np.zeros(m, bool)
         return np.concatenate(self._map_chunks(self._occluded_rays, rays))
 
+    def _chunk_bounds(self, m: int) -> list[tuple[int, int]]:
+        """At most ``chunk_size`` rays a chunk, the count a multiple of ``threads`` (when
+        there are rays enough) and the sizes equal within one ray, so that no thread is
+        left alone with the last chunk."""
+        n = -(-m // self.chunk_size)
+        if self.threads > 1:
+            n = min(m, -(-n // self.threads) * self.threads)
+        edges = [m * i // n for i in range(n + 1)]
+        return list(zip(edges[:-1], edges[1:]))
+
     def _map_chunks(self, fn, rays: Rays):
-        m = len(rays)
-        bounds = [(s, min(m, s + self.chunk_size)) for s in range(0, m, self.chunk_size)]
-        chunks = [rays.subset(slice(a, b)) for a, b in bounds]
+        chunks = [rays.subset(slice(a, b)) for a, b in self._chunk_bounds(len(rays))]
+        if self.uses_shear and rays.shear is None:
+            # the Woop shear is computed inside each chunk's task, so on the thread pool too
+            def fn(chunk, fn=fn):
+                return fn(shear_rays(chunk))
         if self.threads <= 1 or len(chunks) == 1:
             return [fn(c) for c in chunks]
         with ThreadPoolExecutor(self.threads) as pool:
