@@ -19,6 +19,10 @@ from .hits import Hits
 from .intersect import Rays, prepare_rays, shear_rays
 from .mesh import TriangleMesh
 
+#: fewest rays per chunk when a batch is split to give every thread a chunk
+MIN_SPLIT = 4096
+
+
 def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))
 
@@ -75,11 +79,11 @@ class Accel:
 
     def _chunk_bounds(self, m: int) -> list[tuple[int, int]]:
         """At most ``chunk_size`` rays a chunk, the count a multiple of ``threads`` (when
-        there are rays enough) and the sizes equal within one ray, so that no thread is
-        left alone with the last chunk."""
+        each chunk keeps ``MIN_SPLIT`` rays: a small batch is not worth a thread pool) and
+        the sizes equal within one ray, so that no thread is left alone with the last chunk."""
         n = -(-m // self.chunk_size)
-        if self.threads > 1:
-            n = min(m, -(-n // self.threads) * self.threads)
+        if self.threads > 1 and n % self.threads:
+            n = max(n, min(-(-n // self.threads) * self.threads, m // MIN_SPLIT))
         edges = [m * i // n for i in range(n + 1)]
         return list(zip(edges[:-1], edges[1:]))
 
