@@ -244,12 +244,18 @@ class EmbreeAccel(Accel):
         and the indices of the rays whose nearest hit is at exactly t = 0."""
         r = self._run(rays.origins, rays.directions, rays.tmax, "INTERSECT")
         prim, tfar = r["primID"], r["tfar"]
-        good = (prim >= 0) & (tfar > 0)
+        hit = prim >= 0
+        at_zero = hit & (tfar <= 0)
+        any_at_zero = at_zero.any()
+        good = hit & ~at_zero if any_at_zero else hit
         zero = np.float32(0)
-        hits = Hits(np.where(good, tfar, np.float32(np.inf)), np.where(good, self._triangles(prim), np.int32(-1)),
-                    np.where(good, r["u"], zero), np.where(good, r["v"], zero))
-        at_zero = (prim >= 0) & (tfar <= 0)
-        return hits, (np.flatnonzero(at_zero) if at_zero.any() else None)
+        # embreex's primID is already -1 on a miss, u and v are whatever the previous ray left
+        # (embreex rtcore_scene.pyx, EmbreeScene.run: one RTCRayHit reused for every ray)
+        triangle = (prim if self._remap is None and not any_at_zero
+                    else np.where(good, self._triangles(prim), np.int32(-1)))
+        hits = Hits(np.where(good, tfar, np.float32(np.inf)), triangle, np.where(good, r["u"], zero),
+                    np.where(good, r["v"], zero))
+        return hits, (np.flatnonzero(at_zero) if any_at_zero else None)
 
     def _trace_from_origin(self, rays: Rays, idx, out: Hits):
         """Rays ``idx`` as given over [0, tmax] into ``out``; returns the indices of those
