@@ -156,15 +156,15 @@ def _mib(b):
     return "n/a" if b is None else f"{b / 2**20:,.0f}"
 
 
-def scale_check(size: int):
+def scale_check(size: int, runs: int):
     """Both scenes at level 5 with enough copies for ``size`` triangles: evaluation, cold and
-    warm extraction, rates and peak memory."""
+    ``runs`` warm extractions (median), rates and peak memory."""
     copies = max(1, round(size / LEVEL5_TRIANGLES))
     print(f"extraction at scale: bpy {bpy.app.version_string}, numpy {np.__version__}, {os.cpu_count()} cores, "
           f"load average {', '.join(f'{x:.2f}' for x in os.getloadavg())} at start, physical memory "
           f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.1f} GiB")
     print(f"Suzanne at Subdivision Surface level 5 ({LEVEL5_TRIANGLES:,} triangles), {copies} copies in rows of 5\n")
-    print("| scene | meshes read | triangles | evaluate s | cold extract s | warm extract s | warm Mtri/s "
+    print(f"| scene | meshes read | triangles | evaluate s | cold extract s | warm extract s (median of {runs}) | warm Mtri/s "
           "| mesh MiB | extract peak extra RSS MiB | process peak RSS MiB |")
     print("|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
     out = []
@@ -178,13 +178,19 @@ def scale_check(size: int):
         evaluate = time.perf_counter() - t0
         with PeakMemory(traced=False) as cold_mem:
             cold, mesh = timed(lambda: extract.scene_mesh(dg))
-        mesh_bytes = sum(a.nbytes for a in (mesh.vertices, mesh.triangles, mesh.tri_vertices, mesh.valid,
-                                            mesh.object_index, mesh.polygon_index) if a is not None)
+        # what the extraction returns (the corner array and validity are made later, by a build)
+        mesh_bytes = sum(a.nbytes for a in (mesh.vertices, mesh.triangles, mesh.object_index, mesh.polygon_index)
+                         if a is not None)
         n, read = mesh.triangle_count, mesh.source_info.meshes_read
         del mesh
         trim()
+        warms = []
         with PeakMemory(traced=False) as warm_mem:
-            warm, mesh = timed(lambda: extract.scene_mesh(dg))
+            for _ in range(runs):
+                mesh = None
+                t, mesh = timed(lambda: extract.scene_mesh(dg))
+                warms.append(t)
+        warm = statistics.median(warms)
         peak = max(m.rss for m in (cold_mem, warm_mem)) if cold_mem.rss is not None else None
         print(f"| {kind} | {read} | {n:,} | {evaluate:.2f} | {cold:.2f} | {warm:.2f} | {n / warm / 1e6:.1f} "
               f"| {_mib(mesh_bytes)} | {_mib(peak)} | {_mib(warm_mem.hwm)} |")
@@ -194,10 +200,11 @@ def scale_check(size: int):
         del mesh
         trim()
     print("\nevaluate = building the scene and Blender's evaluation of every Subdivision Surface (linked: one per "
-          "copy; instanced: one); cold = the first scene_mesh after it, warm = the second; peak extra RSS = the "
-          "larger of the two extractions' RSS high-water marks above the RSS before each (VmHWM after a reset), "
-          "the TriangleMesh included; process peak = VmHWM at the end of the warm run (Blender's evaluated "
-          f"meshes included).  Load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}.")
+          "copy; instanced: one); cold = the first scene_mesh after it, warm = the later ones; peak extra RSS = "
+          "the larger of the cold and the warm extractions' RSS high-water marks above the RSS before them (VmHWM "
+          "after a reset), the TriangleMesh included (mesh MiB: its vertices, triangles, object and polygon "
+          "indices); process peak = VmHWM at the end of the warm runs (Blender's evaluated meshes included).  "
+          f"Load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}.")
     return out
 
 
@@ -212,7 +219,7 @@ def main(argv=None):
             size = parse_size(args.scale)
         except ValueError:
             ap.error(f"--scale takes a triangle count such as 10m or 2500k, got {args.scale!r}")
-        scale_check(size)
+        scale_check(size, args.runs)
         return
     cores = os.cpu_count()
     try:
