@@ -148,12 +148,20 @@ class EmbreeAccel(Accel):
         """``Accel.trace`` (same hits, same errors), except that each chunk's rays are
         validated inside its pool task and its hits written into one preallocated output:
         embreex leaves so little work per ray that a serial validation of the whole batch
-        and a serial concatenation are a visible share of a threaded trace."""
+        and a serial concatenation are a visible share of a threaded trace.
+
+        The four arrays of the Hits are rows of one (4, M) block: numpy asks Linux for huge
+        pages for an allocation of 4 MiB or more (``madvise(MADV_HUGEPAGE)`` in numpy's
+        ``alloc.c``; ``np.core.multiarray._get_madvise_hugepage()`` says whether it is on),
+        which four separate (M,) arrays of 1M rays each just miss, so the output costs a few
+        page faults instead of one per 4 KiB (BENCHMARKS.md).  Keeping one of the arrays
+        keeps the whole block alive."""
         batch = self._batch(origins, directions, tmin, tmax)
         if batch is None:
             return super().trace(origins, directions, tmin, tmax)
         m, prepare = batch
-        out = Hits(np.empty(m, F32), np.empty(m, np.int32), np.empty(m, F32), np.empty(m, F32))
+        block = np.empty((4, m), F32)
+        out = Hits(block[0], block[1].view(np.int32), block[2], block[3])
 
         def chunk(a, b):
             h = self._trace_rays(prepare(a, b))
