@@ -40,7 +40,7 @@ from .accel import Accel
 from .factory import build
 from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
-from .decide.measurements import _prepare, available_kinds, time_trace, unavailable_reason
+from .decide.measurements import prepare_mesh, available_kinds, time_trace, unavailable_reason
 from .decide.rule import REUSES_SAMPLES, choose
 from .decide.work import grid_work
 from .hits import Hits
@@ -413,7 +413,7 @@ def plan(
     kinds, skipped = available_kinds(kinds)
     notes += skipped
     k = max(1, int(samples))
-    _prepare(mesh)
+    prepare_mesh(mesh)
     if grid is None:
         grid = build(mesh, "grid", **(grid_config or {}))
         reused = False

@@ -6,7 +6,7 @@
 
 Protocol (Hapala, Karlik, Havran 2011, section 4, with this project's additions):
 
-1. calibrate the cost model on the package's procedural scenes (``core.calibration``),
+1. calibrate the cost model on the package's procedural scenes (``core.decide``),
    never on the evaluated meshes; ``--reuse-calibration`` loads ``--calibration`` when it
    holds a valid calibration made here instead of measuring again;
 2. on every real mesh of ``--scenes`` (../shared/scenes) and on larger versions made by
@@ -318,7 +318,7 @@ def decide_model(models, current: str, default: str) -> tuple[str, str]:
                      "**paper**.")
     where = f"the calibration used here is fitted with '{current}'" + ("" if current == default else
                                                                        f" (the package default is '{default}')")
-    lines.append(f"`core.calibration.DEFAULT_MODEL` is '{default}'; {where}; "
+    lines.append(f"`core.decide.DEFAULT_MODEL` is '{default}'; {where}; "
                  + ("the evaluation agrees with the default." if best == default else
                     f"the evaluation favours '{best}' over it."))
     return best, " ".join(lines)
@@ -1077,7 +1077,7 @@ def main(argv=None):
     ap.add_argument("--reuse-calibration", action="store_true", help="load --calibration when valid instead of measuring")
     ap.add_argument("--cal-scale", default="default", help="calibration set: tiny, quick or default")
     ap.add_argument("--cal-rays", type=int, default=None,
-                    help="rays per calibration scene (default: core.calibration's for the scale, as the add-on calibrates)")
+                    help="rays per calibration scene (default: core.decide's for the scale, as the add-on calibrates)")
     ap.add_argument("--cal-ladder", default=",".join(map(str, SAMPLE_LADDER)),
                     help=f"grid sample sizes K timed by the calibration (default {','.join(map(str, SAMPLE_LADDER))})")
     ap.add_argument("--sweep-scenes", default=",".join(SWEEP_SCENES), help="scenes of the K / density sweep ('' for none)")

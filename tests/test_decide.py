@@ -8,6 +8,7 @@ copy against hand-worked figures rather than keeping copies equal.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -186,10 +187,19 @@ def test_a_plan_says_which_candidates_are_missing_and_why(monkeypatch):
     assert p.to_dict()["unavailable"] == p.unavailable
 
 
-def test_the_compatibility_modules_name_the_one_home():
-    """core.calibration and core.report only re-export core.decide (other code imports them)."""
-    from hybrid_raycast.core import calibration, decide, report
+def test_the_break_even_and_the_rule_each_have_one_home():
+    """One home per concept: the break-even formula is defined only in core/decide/cost.py,
+    the decision rule only in core/decide/rule.py, and the old alias modules are gone."""
+    import ast
+    import importlib.util
 
-    assert calibration.calibrate is decide.calibrate and calibration.Calibration is decide.Calibration
-    assert calibration.break_even is cost.break_even and report.break_even is cost.break_even
-    assert report.hybrid_choice is ev.hybrid_choice
+    root = Path(cost.__file__).resolve().parents[2]
+    homes = {}
+    files = sorted(root.glob("*.py")) + [p for d in ("core", "operators", "ui", "scripts") for p in sorted((root / d).rglob("*.py"))]
+    for p in files:
+        for node in ast.walk(ast.parse(p.read_text(), str(p))):
+            if isinstance(node, ast.FunctionDef) and node.name in ("break_even", "choose"):
+                homes.setdefault(node.name, []).append(str(p.relative_to(root)))
+    assert homes == {"break_even": ["core/decide/cost.py"], "choose": ["core/decide/rule.py"]}, homes
+    for alias in ("calibration", "report"):
+        assert importlib.util.find_spec(f"{cost.__package__.rsplit('.', 1)[0]}.{alias}") is None, alias

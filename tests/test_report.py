@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from hybrid_raycast.core import report as rep
+from hybrid_raycast.core.decide import evaluate as rep
 from hybrid_raycast.core.decide import Calibration, KindFit, Measurement, SceneRecord, log2n, nlog2n
 
 ROOT = Path(__file__).resolve().parents[1]
