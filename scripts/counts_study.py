@@ -10,6 +10,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -209,6 +210,9 @@ def main(argv=None):
     ap.add_argument("--evaluate", default="", help="print the issue-14 goals from a saved JSON (no timing)")
     ap.add_argument("--plans", type=int, default=5)
     ap.add_argument("--subdivide", default="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3")
+    ap.add_argument("--only", default="", help="measure only the scenes whose name matches this regular expression")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the rows already in --out and add (or replace) the measured scenes: a study in short locked runs")
     args = ap.parse_args(argv)
     if args.analyse:
         return analyse(args.analyse, args.kind)
@@ -216,7 +220,10 @@ def main(argv=None):
         return evaluate(args.evaluate, plans=args.plans)
     kinds, _ = available_kinds(("grid", "bvh", "embree"))
     todo = scene_list(args.scale, args.subdivide)
-    rows = []
+    if args.only:
+        todo = [t for t in todo if re.search(args.only, t[0])]
+    rows = json.loads(Path(args.out).read_text()) if args.append and Path(args.out).exists() else []
+    rows = [r for r in rows if r["name"] not in {t[0] for t in todo}]
     print(f"load {os.getloadavg()}", flush=True)
     for name, group, make in todo:
         mesh = make()
