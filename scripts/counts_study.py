@@ -23,7 +23,7 @@ core_package()
 from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hybrid_raycast.core.decide import Calibration, Measurement, SceneRecord, fit  # noqa: E402
+from hybrid_raycast.core.decide import DEFAULT_MODEL, Calibration, Measurement, SceneRecord, fit  # noqa: E402
 from hybrid_raycast.core.decide.cost import fit_counts  # noqa: E402
 from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import available_kinds, measure_break_even, time_trace  # noqa: E402
@@ -43,36 +43,67 @@ def records(rows, kinds=("grid", "bvh", "embree")):
     return out
 
 
-GRID_TERMS = {"cells+refs": ("1", "cells", "refs"), "cells": ("1", "cells"), "refs": ("1", "refs")}
-HDS_TERMS = {"log2n": ("1", "log2n"), "log2n+hit": ("1", "log2n", "hit_log2n"),
-             "log2n+hit+length": ("1", "log2n", "hit_log2n", "length_log2n"),
-             "log2n+cells+refs": ("1", "log2n", "cells", "refs"), "cells+refs": ("1", "cells", "refs"),
-             "log2n+length": ("1", "log2n", "length_log2n"), "log2n+hit+len+refs": ("1", "log2n", "hit_log2n", "length_log2n", "refs")}
+#: (label, terms, form) of the grid's and the structure's count models the study compares
+GRID_MODELS = [("cells", ("1", "cells"), "linear"), ("cells+refs", ("1", "cells", "refs"), "linear"),
+               ("log: cells", ("1", "cells"), "log"), ("log: cells+refs", ("1", "cells", "refs"), "log")]
+HDS_MODELS = [("log2n+cells+refs", ("1", "log2n", "cells", "refs"), "linear"),
+              ("log2n+hit+length", ("1", "log2n", "hit_log2n", "length_log2n"), "linear"),
+              ("log: log2n", ("1", "log2n"), "log"), ("log: log2n+cells", ("1", "log2n", "cells"), "log"),
+              ("log: log2n+refs", ("1", "log2n", "refs"), "log"), ("log: cells+refs", ("1", "cells", "refs"), "log"),
+              ("log: log2n+cells+refs", ("1", "log2n", "cells", "refs"), "log")]
+
+
+def repeat_records(rows, recs, r):
+    """The calibration records with repeat ``r``'s timings alone: one calibration of three in a row."""
+    out = []
+    for row, (g, rec) in zip(rows, recs):
+        if g != "calibration":
+            continue
+        kk = {k: Measurement(v[r][0], v[r][1] * rec.rays, rec.rays) for k, v in row["runs"].items() if k in rec.kinds}
+        out.append(SceneRecord(rec.name, rec.triangles, rec.rays, kk, rec.grid_samples, rec.work))
+    return out
 
 
 def analyse(path, kind="bvh"):
-    recs = records(json.loads(Path(path).read_text()))
+    """Held-out errors of every (build model, grid count model, structure count model), and how
+    far apart the per-ray times are that calibrations on each repeat's timings alone predict."""
+    rows = json.loads(Path(path).read_text())
+    recs = records(rows)
     cal = [r for g, r in recs if g == "calibration"]
     ev_ = [r for g, r in recs if g != "calibration"]
+    reps = [repeat_records(rows, recs, r) for r in range(min(len(v) for row in rows for v in row["runs"].values()))]
     mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)])) if any(math.isfinite(x) for x in xs) else math.nan  # noqa: E731
-    print(f"{kind}: {len(cal)} calibration scenes, {len(ev_)} evaluated; median |error| in %: break-even (LOO on calibration / "
-          f"evaluated, fitted on all calibration), grid per-ray, {kind} per-ray")
-    rows = []
-    for gname, gt in [("sample x ratio", None)] + list(GRID_TERMS.items()):
-        for hname, ht in [("affine log2n", None)] + list(HDS_TERMS.items()):
-            kw = dict(kind=kind, grid="sample" if gt is None else "counts", hds="affine" if ht is None else "counts",
-                      terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")})
-            loo = rep.leave_one_out(cal, **kw)
-            held = rep.held_out_errors(cal, ev_, **kw)
-            rows.append((gname, hname, mabs([x["error"] for x in loo]), mabs([x["error"] for x in held]),
-                         mabs([x["grid_error"] for x in held]), mabs([x["per_ray_error"] for x in held]),
-                         sum(not math.isfinite(x["error"]) for x in held)))
-    print(f"{'grid':16s} {kind + ' per ray':20s} {'LOO':>7s} {'eval':>7s} {'t_G':>6s} {'t_H':>6s} undefined")
-    for r in rows:
-        print(f"{r[0]:16s} {r[1]:20s} {r[2]:7.1f} {r[3]:7.1f} {r[4]:6.1f} {r[5]:6.1f} {r[6]}")
+    print(f"{kind}: {len(cal)} calibration scenes, {len(ev_)} evaluated, {len(reps)} repeats; median |error| in %: break-even "
+          f"(LOO on calibration / evaluated, fitted on all calibration), grid per-ray, {kind} per-ray, {kind} build (evaluated); "
+          f"agree: largest per-ray (grid, {kind}) and build difference between calibrations on single repeats, on the evaluated meshes")
+    print(f"{'build':7s} {'grid':16s} {kind + ' per ray':22s} {'LOO':>7s} {'eval':>7s} {'t_G':>6s} {'t_H':>6s} {'T_B':>6s} undef "
+          f"{'agree t_G':>9s} {'t_H':>6s} {'T_B':>6s}")
+    for model in ("affine", "power"):
+        for gname, gt, gf in GRID_MODELS:
+            for hname, ht, hf in HDS_MODELS:
+                kw = dict(kind=kind, grid="counts", hds="counts", model=model,
+                          terms_of={"grid": gt, kind: ht}, forms_of={"grid": gf, kind: hf})
+                loo = rep.leave_one_out(cal, **kw)
+                held = rep.held_out_errors(cal, ev_, **kw)
+                fits = [(fit_counts(rr, ("grid", kind), terms_of=kw["terms_of"], forms_of=kw["forms_of"]),
+                         fit(rr, (kind,), model=model)[kind]) for rr in reps]
+                worst = [0.0, 0.0, 0.0]
+                for a in range(len(fits)):
+                    for b in range(a + 1, len(fits)):
+                        for rec in ev_:
+                            for j, k in enumerate(("grid", kind)):
+                                pa, pb = fits[a][0][k].predict(rec.triangles, rec.work), fits[b][0][k].predict(rec.triangles, rec.work)
+                                worst[j] = max(worst[j], 200 * abs(pa - pb) / (pa + pb))
+                            est = rep.model_functions(model)[1]
+                            pa, pb = est(fits[a][1], kind, rec.triangles).build, est(fits[b][1], kind, rec.triangles).build
+                            worst[2] = max(worst[2], 200 * abs(pa - pb) / (pa + pb))
+                print(f"{model:7s} {gname:16s} {hname:22s} {mabs([x['error'] for x in loo]):7.1f} {mabs([x['error'] for x in held]):7.1f} "
+                      f"{mabs([x['grid_error'] for x in held]):6.1f} {mabs([x['per_ray_error'] for x in held]):6.1f} "
+                      f"{mabs([x['build_error'] for x in held]):6.1f} {sum(not math.isfinite(x['error']) for x in held):5d} "
+                      f"{worst[0]:9.1f} {worst[1]:6.1f} {worst[2]:6.1f}", flush=True)
 
 
-def _calibration(recs, model="affine"):
+def _calibration(recs, model=DEFAULT_MODEL):
     """A Calibration fitted on ``recs`` as ``calibrate()`` fits it (affine build and per-ray
     constants, the count models of ``cost.COUNT_TERMS``)."""
     kinds = tuple(k for k in ("bvh", "embree") if all(k in r.kinds for r in recs))
@@ -133,15 +164,7 @@ def evaluate(path, k_samples=16384, plans=5):
           f"({sp['hybrid_reuse_over_oracle']['p90']:.3f}); online batches of 32k {sp['online_over_oracle']['median']:.3f}; "
           f"calls of 1,000 rays with ski rental across calls {np.median(calls):.3f} (max {max(calls):.2f})")
     # constants from each repeat alone: what two calibrations in a row would give
-    fits = []
-    for r in range(3):
-        rr = []
-        for row, (g, rec) in zip(rows, recs):
-            if g != "calibration":
-                continue
-            kk = {k: Measurement(v[r][0], v[r][1] * rec.rays, rec.rays) for k, v in row["runs"].items() if k in rec.kinds}
-            rr.append(SceneRecord(rec.name, rec.triangles, rec.rays, kk, rec.grid_samples, rec.work))
-        fits.append(_calibration(rr))
+    fits = [_calibration(repeat_records(rows, recs, r)) for r in range(3)]
     print("calibrations fitted on each repeat's timings alone (1 vs 2, 1 vs 3, 2 vs 3): largest difference of the "
           "per-ray times and builds they predict on the evaluated meshes, and of their break-evens")
     for a, b in ((0, 1), (0, 2), (1, 2)):

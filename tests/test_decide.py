@@ -16,7 +16,7 @@ import pytest
 from hybrid_raycast.core.decide import cost, rule
 from hybrid_raycast.core.decide import evaluate as ev
 from hybrid_raycast.core.plan import plan_from_timings
-from hybrid_raycast.core.decide import Calibration, KindFit
+from hybrid_raycast.core.decide import Calibration, KindFit, Measurement, SceneRecord
 
 
 def test_break_even_is_build_over_the_per_ray_gain_and_never_when_the_grid_is_not_slower():
@@ -142,6 +142,44 @@ def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     assert (t["log2n"], t["hit_log2n"], t["length_log2n"]) == (10.0, 2.5, 5.0)
 
 
+def test_log_count_fit_recovers_an_exact_power_law_and_predicts_it():
+    """form 'log': t = exp(c0) (1 + cells)^c1 (1 + refs)^c2 is fitted exactly on data that
+    follow it, and predicts it on counts it never saw."""
+    law = lambda c, f: 3e-7 * (1 + c) ** 0.6 * (1 + f) ** 0.25  # noqa: E731
+    rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, law(c, f))
+            for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
+    f = cost.CountFit.fit(rows, ("1", "cells", "refs"), form="log")
+    assert f.form == "log"
+    assert f.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
+    assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
+    assert f.predict(1 << 20, {"cells": 99, "refs": 15}) == pytest.approx(3e-7 * 100 ** 0.6 * 16 ** 0.25, rel=1e-9)
+    with pytest.raises(ValueError, match="form"):
+        cost.CountFit.fit(rows, ("1", "cells"), form="cubic")
+    with pytest.raises(ValueError, match="'1'"):
+        cost.CountFit.fit(rows, ("cells",), form="log")
+
+
+def test_log_count_fit_keeps_every_term_where_the_linear_fit_drops_one():
+    """The linear fit's sign constraint drops a term whose slope would be negative (and may keep
+    it on the next calibration's timings); the log fit keeps the term set fixed."""
+    rows = [(1 << 10, {"cells": c, "refs": 0.0, "hit": 0.0, "length": 0.0}, t)
+            for c, t in ((1.0, 3.0), (2.0, 2.0), (3.0, 1.0))]
+    lin = cost.CountFit.fit(rows, ("1", "cells"))
+    log = cost.CountFit.fit(rows, ("1", "cells"), form="log")
+    assert lin.coef[1] == 0.0 and log.coef[1] < 0
+
+
+def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
+    recs = [SceneRecord(f"s{n}", 1 << n, 1000, {"bvh": Measurement(2e-8 * cost.nlog2n(1 << n) ** 1.1,
+                                                                   1000 * 1e-7 * n ** 0.8, 1000)})
+            for n in (8, 11, 14, 17, 20)]
+    f = cost.fit(recs, ("bvh",), model="power")["bvh"]
+    assert (f.c_B, f.extra["p_B"], f.c_R, f.extra["p_R"]) == pytest.approx((2e-8, 1.1, 1e-7, 0.8), rel=1e-9)
+    e = cost.MODELS["power"][1](f, "bvh", 1 << 16)  # N log2 N = 1,048,576, log2 N = 16
+    assert (e.build, e.per_ray) == pytest.approx((2e-8 * 1048576 ** 1.1, 1e-7 * 16 ** 0.8), rel=1e-9)
+    assert e.build_low <= e.build <= e.build_high
+
+
 def test_nonneg_fit_drops_a_term_that_would_be_negative():
     x = np.array([[1, 1.0], [1, 2.0], [1, 3.0]])
     y = np.array([3.0, 2.0, 1.0])  # falling with x: the slope would be negative
@@ -170,8 +208,10 @@ def test_count_model_survives_save_and_load(tmp_path):
     from hybrid_raycast.core.decide import load
 
     cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
-                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5),
+                              "bvh": cost.CountFit(("1", "log2n"), (-15.0, 0.5), 0.9, 1.1, 5, form="log")})
     back = load(cal.save(tmp_path / "c.json"))
+    assert back.counts["bvh"].predict(1 << 12, {}) == pytest.approx(math.exp(-15.0) * 13 ** 0.5, rel=1e-12)
     assert back.counts == cal.counts
 
 

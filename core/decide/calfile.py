@@ -166,8 +166,12 @@ class Calibration:
                 f"   c_R {f.c_R * 1e9:8.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]   ({f.scenes} scenes)"
             )
         for k, f in self.counts.items():
-            lines.append(f"  {k:7s} per ray = " + " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(f.terms, f.coef))
-                         + f"   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
+            if f.form == "log":
+                body = f"{math.exp(f.coef[f.terms.index('1')]) * 1e9:.2f} ns" + "".join(
+                    f" x (1 + {t})^{c:.3f}" for t, c in zip(f.terms, f.coef) if t != "1")
+            else:
+                body = " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(f.terms, f.coef))
+            lines.append(f"  {k:7s} per ray = {body}   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------
@@ -208,7 +212,8 @@ class Calibration:
                 threads=d.get("threads"), duration_s=float(d.get("duration_s", 0.0)), created=str(d.get("created", "")),
                 source=str(d.get("source", "measured")), version=version, notes=[str(x) for x in d.get("notes", [])],
                 counts={str(k): CountFit(tuple(v["terms"]), tuple(float(c) for c in v["coef"]), float(v["low"]),
-                                         float(v["high"]), int(v.get("scenes", 0))) for k, v in d.get("counts", {}).items()},
+                                         float(v["high"]), int(v.get("scenes", 0)), str(v.get("form", "linear")))
+                        for k, v in d.get("counts", {}).items()},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise CalibrationError(f"malformed calibration data ({type(e).__name__}: {e})") from None

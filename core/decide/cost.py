@@ -186,11 +186,54 @@ def _estimate_affine(fit: KindFit, kind: str, n: int) -> Estimate:
                     a_r + fit.c_R * y, a_r + fit.c_R_low * y, a_r + fit.c_R_high * y)
 
 
+def _loglog_fit(x, y) -> tuple[float, float]:
+    """(c, p) of y ~ c x^p by least squares on log y (every residual is a relative one, and
+    there is no sign constraint that could drop or keep a term between two calibrations);
+    fewer than 3 points, or a flat x, fall back on the paper's mean ratio (p = 1)."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    ok = (y > 0) & np.isfinite(y) & (x > 0)
+    x, y = x[ok], y[ok]
+    if x.size < 3 or np.ptp(np.log(x)) == 0:
+        return (float(np.mean(y / x)) if x.size else 0.0), 1.0
+    p, a = np.polyfit(np.log(x), np.log(y), 1)
+    return float(np.exp(a)), float(p)
+
+
+def _fit_power(records: list[SceneRecord], kind: str, spread) -> KindFit:
+    """T_B ~ c_B (N log2 N)^p_B and t ~ c_R (log2 N)^p_R, fitted in log space: a power law
+    bends where the affine model needs a fixed term, and with no constraint to switch on or
+    off its constants move smoothly with the timings (issue 14: two calibrations in a row
+    gave affine build constants 90% apart).  The interval scales c by the spread of
+    measured / fitted over the scenes."""
+    have = [r for r in records if kind in r.kinds]
+    xb, yb = [nlog2n(r.triangles) for r in have], [r.kinds[kind].build_time for r in have]
+    xr, yr = [log2n(r.triangles) for r in have], [r.kinds[kind].per_ray for r in have]
+    cb, pb = _loglog_fit(xb, yb)
+    cr, pr = _loglog_fit(xr, yr)
+
+    def spread_of(x, y, c, p):
+        q = [yi / (c * xi ** p) for xi, yi in zip(x, y) if c > 0 and yi > 0]
+        if not q:
+            return [1.0, 1.0]
+        lo, hi = (float(v) for v in np.percentile(q, spread))
+        return [min(lo, 1.0), max(hi, 1.0)]
+
+    qb, qr = spread_of(xb, yb, cb, pb), spread_of(xr, yr, cr, pr)
+    return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have), extra={"p_B": pb, "p_R": pr})
+
+
+def _estimate_power(fit: KindFit, kind: str, n: int) -> Estimate:
+    x, y = nlog2n(n), log2n(n)
+    xb, yr = x ** fit.extra.get("p_B", 1.0), y ** fit.extra.get("p_R", 1.0)
+    return Estimate(kind, fit.c_B * xb, fit.c_B_low * xb, fit.c_B_high * xb, fit.c_R * yr, fit.c_R_low * yr, fit.c_R_high * yr)
+
+
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
 #: KindFit.extra.  'affine' (issue 4, item 5) is the default: it cuts the leave-one-out
 #: break-even error on the calibration scenes and the build / per-ray errors on the real
 #: meshes (docs/report/report.md has both models side by side).
-MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine)}
+MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine),
+          "power": (_fit_power, _estimate_power)}
 
 
 def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread=DEFAULT_SPREAD) -> dict[str, KindFit]:
@@ -229,31 +272,54 @@ def nonneg_relative_lsq(x, y) -> np.ndarray:
     return b
 
 
+def _log_columns(x: np.ndarray, names) -> np.ndarray:
+    """The log form's regressors: 1 for the term '1' (the intercept), log(1 + term) else
+    (every count is >= 0; 1 + keeps a zero hit fraction finite)."""
+    return np.stack([np.ones(len(x)) if k == "1" else np.log1p(np.maximum(x[:, j], 0.0))
+                     for j, k in enumerate(names)], axis=1)
+
+
 @dataclass
 class CountFit:
-    """time per ray = sum_j coef[j] * terms[j] (seconds), with the spread of measured / fitted
-    over the calibration scenes as (low, high) multipliers."""
+    """time per ray from the named ``terms`` (seconds), with the spread of measured / fitted
+    over the calibration scenes as (low, high) multipliers.
+
+    form 'linear': sum_j coef[j] term_j, coefficients >= 0 (``nonneg_relative_lsq``);
+    form 'log':    exp(sum_j coef[j] L_j) with L = 1 for '1' and log(1 + term) else, a power
+                   law fitted by least squares on log time (no sign constraint, so no term is
+                   dropped in one calibration and kept in the next)."""
 
     terms: tuple
     coef: tuple
     low: float = 1.0
     high: float = 1.0
     scenes: int = 0
+    form: str = "linear"
 
     def predict(self, triangles: int, work: dict) -> float:
         t = terms(triangles, work)
+        if self.form == "log":
+            x = np.array([[t[k] for k in self.terms]], np.float64)
+            return float(np.exp(_log_columns(x, self.terms)[0] @ np.asarray(self.coef, np.float64)))
         return float(sum(c * t[k] for k, c in zip(self.terms, self.coef)))
 
     @classmethod
-    def fit(cls, rows, names, spread=DEFAULT_SPREAD) -> "CountFit":
+    def fit(cls, rows, names, spread=DEFAULT_SPREAD, form: str = "linear") -> "CountFit":
         """rows: (triangles, work dict, measured time per ray) per scene."""
+        if form not in ("linear", "log"):
+            raise ValueError(f"unknown count-model form {form!r}; expected 'linear' or 'log'")
+        if form == "log" and "1" not in names:
+            raise ValueError("a 'log' count model needs the term '1' (its scale)")
         rows = [r for r in rows if r[2] > 0 and math.isfinite(r[2])]
         if not rows:
-            return cls(tuple(names), tuple(0.0 for _ in names))
+            return cls(tuple(names), tuple(0.0 for _ in names), form=form)
         x = np.array([[terms(n, w)[k] for k in names] for n, w, _ in rows])
         y = np.array([t for _, _, t in rows])
-        b = nonneg_relative_lsq(x, y)
-        f = cls(tuple(names), tuple(float(v) for v in b), scenes=len(rows))
+        if form == "log":
+            b, *_ = np.linalg.lstsq(_log_columns(x, names), np.log(y), rcond=None)
+        else:
+            b = nonneg_relative_lsq(x, y)
+        f = cls(tuple(names), tuple(float(v) for v in b), scenes=len(rows), form=form)
         q = [t / p for (n, w, t) in rows if (p := f.predict(n, w)) > 0]
         if q:
             lo, hi = (float(v) for v in np.percentile(q, spread))
@@ -275,12 +341,17 @@ COUNT_TERMS = {
 }
 
 
-def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None) -> dict[str, CountFit]:
+#: the form of each count model (``CountFit.form``)
+COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "linear"}
+
+
+def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None) -> dict[str, CountFit]:
     """A CountFit per kind ('grid' and the structures) over the records with work counts."""
     terms_of = dict(COUNT_TERMS, **(terms_of or {}))
+    forms_of = dict(COUNT_FORMS, **(forms_of or {}))
     out = {}
     for k in kinds:
         rows = [(r.triangles, r.work, r.kinds[k].per_ray) for r in records if r.work and k in r.kinds]
         if len(rows) >= 3 and k in terms_of:
-            out[k] = CountFit.fit(rows, terms_of[k], spread)
+            out[k] = CountFit.fit(rows, terms_of[k], spread, forms_of.get(k, "linear"))
     return out

@@ -396,6 +396,7 @@ MODEL_DOCS = {
     "paper": "c_B = mean T_B/(N log2 N), c_R = mean T_R/(M log2 N) (section 3)",
     "median": "the same ratios' medians",
     "affine": "T_B = a_B + c_B N log2 N, t = a_R + c_R log2 N, least squares on relative residuals",
+    "power": "T_B = c_B (N log2 N)^p_B, t = c_R (log2 N)^p_R, least squares on log times",
 }
 
 
@@ -470,7 +471,7 @@ def _ratio_of(records, k: int) -> float:
 
 
 def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: str = "counts", terms_of=None,
-                    model: str = "affine", samples: int = 16384) -> list[dict]:
+                    model: str = "affine", samples: int = 16384, forms_of=None) -> list[dict]:
     """Fit on ``train`` (SceneRecords), estimate each of ``test`` and compare its break-even
     with the one measured in its own record.
 
@@ -483,7 +484,7 @@ def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: s
     fits = model_functions(model)[0]
     est_fn = model_functions(model)[1]
     f = fits([r for r in train if kind in r.kinds], kind, DEFAULT_SPREAD)
-    counts = fit_counts(train, ("grid", kind), terms_of=terms_of)
+    counts = fit_counts(train, ("grid", kind), terms_of=terms_of, forms_of=forms_of)
     ratio = _ratio_of(train, samples)
     out = []
     for rec in test:
