@@ -13,6 +13,7 @@ import os
 import re
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -46,7 +47,7 @@ def records(rows, kinds=("grid", "bvh", "embree")):
 #: (label, terms, form) of the grid's and the structure's count models the study compares
 GRID_MODELS = [("cells", ("1", "cells"), "linear"), ("cells+refs", ("1", "cells", "refs"), "linear"),
                ("log: cells", ("1", "cells"), "log"), ("log: cells+refs", ("1", "cells", "refs"), "log")]
-HDS_MODELS = [("log2n+cells+refs", ("1", "log2n", "cells", "refs"), "linear"),
+HDS_MODELS = [("log2n", ("1", "log2n"), "linear"), ("log2n+cells+refs", ("1", "log2n", "cells", "refs"), "linear"),
               ("log2n+hit+length", ("1", "log2n", "hit_log2n", "length_log2n"), "linear"),
               ("log: log2n", ("1", "log2n"), "log"), ("log: log2n+cells", ("1", "log2n", "cells"), "log"),
               ("log: log2n+refs", ("1", "log2n", "refs"), "log"), ("log: cells+refs", ("1", "cells", "refs"), "log"),
@@ -103,6 +104,43 @@ def analyse(path, kind="bvh"):
                       f"{worst[0]:9.1f} {worst[1]:6.1f} {worst[2]:6.1f}", flush=True)
 
 
+def agree(path, cal_paths, kind="bvh"):
+    """Two calibrations in a row (``ship_calibration.py --output``), refitted under each
+    (build model, grid count model, structure count model): how far apart the constants and
+    the per-ray times, builds and break-evens they predict on the study's evaluated meshes are."""
+    from hybrid_raycast.core.decide import load
+
+    ev_ = [r for g, r in records(json.loads(Path(path).read_text())) if g != "calibration"]
+    cals = [load(p, check_version=False) for p in cal_paths]
+    d = lambda a, b: 200 * abs(a - b) / (a + b) if a + b > 0 else 0.0  # noqa: E731
+    print(f"{len(cals)} calibrations ({', '.join(str(p) for p in cal_paths)}); differences in % of the mean, "
+          f"median (max) over {len(ev_)} evaluated meshes; break-even max/min median (max)")
+    print(f"{'build':7s} {'grid':16s} {kind + ' per ray':22s} {'t_G':>13s} {'t_H':>13s} {'T_B':>13s} {'R*':>13s}  constants")
+    for model in ("affine", "power"):
+        for gname, gt, gf in GRID_MODELS:
+            for hname, ht, hf in HDS_MODELS:
+                fits = [(fit_counts(c.scenes, ("grid", kind), terms_of={"grid": gt, kind: ht}, forms_of={"grid": gf, kind: hf}),
+                         fit(c.scenes, (kind,), model=model)[kind]) for c in cals]
+                est = rep.model_functions(model)[1]
+                cols = {"t_G": [], "t_H": [], "T_B": [], "R*": []}
+                for rec in ev_:
+                    n, w = rec.triangles, rec.work
+                    p = [(f[0]["grid"].predict(n, w), f[0][kind].predict(n, w), est(f[1], kind, n).build) for f in fits]
+                    cols["t_G"].append(d(p[0][0], p[1][0]))
+                    cols["t_H"].append(d(p[0][1], p[1][1]))
+                    cols["T_B"].append(d(p[0][2], p[1][2]))
+                    r = [rep.break_even(b, g, h) for g, h, b in p]
+                    if all(math.isfinite(x) for x in r):
+                        cols["R*"].append(max(r) / min(r))
+                consts = "; ".join(f"{k} " + "/".join(f"{a:.3g}|{b:.3g}" for a, b in zip(fits[0][0][k].coef, fits[1][0][k].coef))
+                                   for k in ("grid", kind))
+                b0, b1 = fits[0][1], fits[1][1]
+                consts += f"; build c_B {b0.c_B:.3g}|{b1.c_B:.3g} " + " ".join(f"{x} {b0.extra[x]:.3g}|{b1.extra[x]:.3g}" for x in b0.extra)
+                cell = lambda v, f="{:5.1f}": (f.format(np.median(v)) + " (" + f.format(max(v)) + ")") if v else "n/a"  # noqa: E731
+                print(f"{model:7s} {gname:16s} {hname:22s} {cell(cols['t_G']):>13s} {cell(cols['t_H']):>13s} {cell(cols['T_B']):>13s} "
+                      f"{cell(cols['R*'], '{:5.2f}'):>13s}  {consts}", flush=True)
+
+
 def _calibration(recs, model=DEFAULT_MODEL):
     """A Calibration fitted on ``recs`` as ``calibrate()`` fits it (affine build and per-ray
     constants, the count models of ``cost.COUNT_TERMS``)."""
@@ -133,7 +171,7 @@ def evaluate(path, k_samples=16384, plans=5):
         cost_e = float(np.median(row["sample"])) * k_samples + row["work_time"]
         s = rep.SceneResult(rec.name, n, rec.rays, rep.Cost(rec.kinds["grid"].build_time, rec.kinds["grid"].per_ray),
                             meas, est, t_g, cost_e, k_samples, g,
-                            reuse_estimate_time=row["work_time"])
+                            reuse_estimate_time=row["work_time"], floor=cal.break_even_floor(n, ("bvh",)))
         s.extra["R_C_repeats"] = row["R_C_repeats"]
         results.append(s)
     mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)]))  # noqa: E731
@@ -152,6 +190,15 @@ def evaluate(path, k_samples=16384, plans=5):
             v = s.extra["R_C_repeats"].get(k, [])
             print(f"   {s.name:20s} R_C {rep.true_break_even(s, k):12,.0f} R_est {rep.estimated_break_even(s, k):12,.0f} "
                   f"error {x:+7.1f}%  R_C repeats {', '.join(f'{y:,.0f}' for y in v)}")
+    for k in kinds:
+        fl = [(s.name, s.floor, rep.true_break_even(s, k), cal.break_even_floor(s.triangles, (k,))) for s in results]
+        bad = [x for x in fl if x[3] > x[2]]
+        print(f"floor on R* vs {k} (calibration alone): median floor / R_C {np.median([x[3] / x[2] for x in fl]):.3f}, "
+              f"max {max(x[3] / x[2] for x in fl):.3f}; above R_C on {len(bad)} of {len(fl)} scenes"
+              + (": " + ", ".join(f"{n} {f:,.0f} > {r:,.0f}" for n, _, r, f in bad) if bad else ""))
+    sp0 = rep.speedup_summary([replace(s, floor=0.0) for s in results])
+    print(f"hybrid / oracle without the floor, median: (i) {sp0['hybrid_over_oracle']['median']:.3f}, "
+          f"(ii) {sp0['hybrid_reuse_over_oracle']['median']:.3f}")
     pk = rep.pick_accuracy(results)
     sp = rep.speedup_summary(results)
     calls = []
@@ -232,11 +279,15 @@ def main(argv=None):
     ap.add_argument("--kind", default="bvh")
     ap.add_argument("--evaluate", default="", help="print the issue-14 goals from a saved JSON (no timing)")
     ap.add_argument("--plans", type=int, default=5)
+    ap.add_argument("--agree", nargs="+", default=[], metavar="CALIBRATION",
+                    help="with --analyse's JSON as --out: compare calibration files refitted under each model (no timing)")
     ap.add_argument("--subdivide", default="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3")
     ap.add_argument("--only", default="", help="measure only the scenes whose name matches this regular expression")
     ap.add_argument("--append", action="store_true",
                     help="keep the rows already in --out and add (or replace) the measured scenes: a study in short locked runs")
     args = ap.parse_args(argv)
+    if args.agree:
+        return agree(args.out, args.agree, args.kind)
     if args.analyse:
         return analyse(args.analyse, args.kind)
     if args.evaluate:

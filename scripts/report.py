@@ -171,6 +171,8 @@ def measure_scene(name, group, mesh, cal, args, kinds):
     s = rep.SceneResult(
         name, n, len(o), rep.Cost(g_build, g_time / len(o)), measured, est, p.grid_per_ray, p.estimate_time,
         p.samples, group, grid_sample_per_ray=p.grid_sample_per_ray, reuse_estimate_time=pw.estimate_time,
+        # the hybrid the evaluation runs decides between the grid and the numpy BVH: its floor
+        floor=cal.break_even_floor(n, ("bvh",)),
         extra={"plan_grid_build": p.grid_build_time, "grid_resolution": [int(x) for x in getattr(grid, "res", [])],
                "plan_break_even": {k: c.break_even for k, c in p.candidates.items() if k != "grid"},
                "break_even_low": p.candidates["bvh"].break_even_low, "break_even_high": p.candidates["bvh"].break_even_high,

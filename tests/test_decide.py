@@ -180,6 +180,51 @@ def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
     assert e.build_low <= e.build <= e.build_high
 
 
+def _lawful_records(ns=(1000, 4000, 16000, 64000, 256000)):
+    """Calibration records that follow exact power laws: grid 1e-7 N^0.25 s a ray, the BVH
+    gaining half of that, its build 5e-8 (N log2 N)^1.05."""
+    return [SceneRecord(f"s{n}", n, 1000, {"grid": Measurement(1e-3, 1000 * 1e-7 * n ** 0.25, 1000),
+                                             "bvh": Measurement(5e-8 * cost.nlog2n(n) ** 1.05, 1000 * 0.5e-7 * n ** 0.25, 1000)})
+            for n in ns]
+
+
+def test_prior_floor_is_the_margin_times_lowest_build_over_largest_gain_on_exact_laws():
+    n = 30000
+    p = cost.prior(_lawful_records(), n, ("bvh",))
+    gain = 0.5e-7 * n ** 0.25
+    assert p.grid_per_ray == pytest.approx(1e-7 * n ** 0.25, rel=1e-9)
+    assert p.per_ray["bvh"] == pytest.approx(p.grid_per_ray - gain, rel=1e-9)
+    assert p.floor == pytest.approx(cost.FLOOR_MARGIN * 5e-8 * cost.nlog2n(n) ** 1.05 / gain, rel=1e-9)
+    # the floor lies below the true break-even of a scene on the laws, by the margin
+    assert p.floor == pytest.approx(cost.FLOOR_MARGIN * cost.break_even(5e-8 * cost.nlog2n(n) ** 1.05, 2 * gain, gain), rel=1e-9)
+    assert cost.prior(_lawful_records()[:2], n, ("bvh",)).floor == 0.0  # two scenes bound nothing
+    assert cost.prior(_lawful_records(), n, ("bvh", "embree")).floor == 0.0  # embree was not measured
+
+
+def test_a_plan_below_the_floor_keeps_the_grid_without_a_sample_and_samples_above_it():
+    from hybrid_raycast.core import plan, scenes as S
+
+    recs = _lawful_records()
+    cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
+    mesh = S.torus(3000)
+    floor = cal.break_even_floor(mesh.triangle_count, ("bvh",))
+    assert floor > 100
+    below = plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000)
+    assert (below.samples, below.decision, below.break_even_floor) == (0, "GRID", floor)
+    assert below.break_even >= floor / cost.FLOOR_MARGIN * (1 - 1e-9)
+    above = plan(mesh, floor * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
+    assert above.samples == 2000
+    assert plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000, prior=False).samples == 2000
+
+
+def test_the_evaluated_hybrid_pays_no_estimate_below_the_floor():
+    s = ev.SceneResult("x", 1000, 10, ev.Cost(0.01, 1e-6), {"bvh": ev.Cost(0.02, 1e-7)}, {"bvh": ev.Cost(0.02, 1e-7)},
+                       1e-6, 0.005, 100, floor=500.0)
+    t = ev.hybrid_totals(s, [400.0, 600.0])
+    assert t["hybrid"].tolist() == pytest.approx([0.01 + 400e-6, 0.01 + 0.005 + 600e-6])
+    assert list(t["choice"]) == ["grid", "grid"]
+
+
 def test_nonneg_fit_drops_a_term_that_would_be_negative():
     x = np.array([[1, 1.0], [1, 2.0], [1, 3.0]])
     y = np.array([3.0, 2.0, 1.0])  # falling with x: the slope would be negative

@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord
+from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord,
+                   Prior, prior)
 
 #: bump when the JSON layout or the meaning of a field changes
 CALIBRATION_FORMAT = 2
@@ -156,6 +157,15 @@ class Calibration:
             return None
         t = f.predict(n, work)
         return t, t * f.low, t * f.high
+
+    def prior(self, n: int, kinds) -> Prior:
+        """What the calibration alone says about an N-triangle scene against ``kinds`` (the
+        break-even's floor, ``cost.prior``)."""
+        return prior(self.scenes, n, [k for k in kinds if k != "grid"])
+
+    def break_even_floor(self, n: int, kinds) -> float:
+        """A lower bound on the break-even of an N-triangle scene against ``kinds``; 0: none."""
+        return self.prior(n, kinds).floor
 
     def describe(self) -> str:
         """One line per structure: the constants and their interval, in ns."""

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-DEFAULT_MODEL = "affine"
+DEFAULT_MODEL = "power"
 DEFAULT_SPREAD = (10.0, 90.0)
 
 
@@ -342,7 +342,7 @@ COUNT_TERMS = {
 
 
 #: the form of each count model (``CountFit.form``)
-COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "linear"}
+COUNT_FORMS = {"grid": "log", "bvh": "linear", "embree": "log"}
 
 
 def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None) -> dict[str, CountFit]:
@@ -355,3 +355,71 @@ def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=No
         if len(rows) >= 3 and k in terms_of:
             out[k] = CountFit.fit(rows, terms_of[k], spread, forms_of.get(k, "linear"))
     return out
+
+
+# -- a prior bound on the break-even, before any sample (issue 14) -----------------------------
+
+#: the floor's safety factor: a bound from extremes of ~20 scenes' timings, halved because
+#: timings on a shared machine move by 20-40% between runs (and the scene is not among them)
+FLOOR_MARGIN = 0.5
+
+
+def _power_envelope(x, y, side: str) -> tuple[float, float]:
+    """(c, p) with y_i >= c x_i^p for all i (side 'low') or <= (side 'high'): the log-space
+    power law through the points, shifted to their lowest / highest ratio."""
+    c, p = _loglog_fit(x, y)
+    q = [yi / (c * xi ** p) for xi, yi in zip(x, y) if yi > 0 and xi > 0]
+    if not q or c <= 0:
+        return 0.0, 1.0
+    return c * (min(q) if side == "low" else max(q)), p
+
+
+@dataclass
+class Prior:
+    """What the calibration alone says about an N-triangle scene, before any sample.
+
+    floor: a lower bound on the break-even against every candidate (0: none);
+    grid_per_ray: the slowest grid time per ray the calibration scenes imply;
+    per_ray: {kind: grid_per_ray less the largest gain per ray any calibration scene showed},
+    figures under which each candidate's break-even is at least ``floor / FLOOR_MARGIN``."""
+
+    floor: float = 0.0
+    grid_per_ray: float = 0.0
+    per_ray: dict = field(default_factory=dict)
+
+
+def _ceiling(x, y, n: float) -> float:
+    """The high power-law envelope of (x, y) at n; 0 with fewer than 3 points."""
+    if len(x) < 3:
+        return 0.0
+    c, p = _power_envelope(x, y, "high")
+    return c * float(n) ** p
+
+
+def prior(records: list[SceneRecord], n: int, kinds) -> Prior:
+    """A lower bound on R* = T_B^H / (t_G - t_H) from the calibration scenes alone.
+
+    R*_H >= T_B,low(N) / g_high(N): the lowest build and the largest gain per ray g = t_G - t_H
+    any calibration scene showed, as power laws (in N log2 N and N) through the extremes; g is
+    also bounded by the grid's slowest time per ray (t_H >= 0).  The floor is FLOOR_MARGIN
+    times the least of these over the candidates: below it the grid wins without a sample, so
+    a plan for so few rays need not pay for one.  No floor without 3 scenes measuring the
+    grid and each candidate."""
+    grid = [r for r in records if "grid" in r.kinds and r.triangles > 0]
+    t_g = _ceiling([r.triangles for r in grid], [r.kinds["grid"].per_ray for r in grid], n) if n > 0 else 0.0
+    if not t_g > 0 or not kinds:
+        return Prior(0.0, t_g)
+    bounds, per_ray = [], {}
+    for k in kinds:
+        have = [r for r in grid if k in r.kinds]
+        if len(have) < 3:
+            return Prior(0.0, t_g)  # a candidate the calibration cannot bound: no floor
+        cb, pb = _power_envelope([nlog2n(r.triangles) for r in have], [r.kinds[k].build_time for r in have], "low")
+        gain = [(r.triangles, r.kinds["grid"].per_ray - r.kinds[k].per_ray) for r in have]
+        gain = [(x, y) for x, y in gain if y > 0]
+        g = min(t_g, _ceiling([x for x, _ in gain], [y for _, y in gain], n)) if len(gain) >= 3 else t_g
+        if not g > 0:
+            g = t_g
+        bounds.append(cb * nlog2n(n) ** pb / g)
+        per_ray[k] = max(t_g - g, 0.0)
+    return Prior(FLOOR_MARGIN * min(bounds), t_g, per_ray)
