@@ -34,6 +34,16 @@ from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+#: calibration scenes left out of every fit (``--drop``): to compare calibration sets
+DROP = None
+
+
+def load_rows(path):
+    """The study's rows, less the calibration scenes ``--drop`` leaves out."""
+    rows = json.loads(Path(path).read_text())
+    return [r for r in rows if not (DROP and r["group"] == "calibration" and re.search(DROP, r["name"]))]
+
+
 def records(rows, kinds=("grid", "bvh", "embree")):
     """The study's rows as calibration SceneRecords (medians as Measurements)."""
     out = []
@@ -68,7 +78,7 @@ def repeat_records(rows, recs, r):
 def analyse(path, kind="bvh"):
     """Held-out errors of every (build model, grid count model, structure count model), and how
     far apart the per-ray times are that calibrations on each repeat's timings alone predict."""
-    rows = json.loads(Path(path).read_text())
+    rows = load_rows(path)
     recs = records(rows)
     cal = [r for g, r in recs if g == "calibration"]
     ev_ = [r for g, r in recs if g != "calibration"]
@@ -154,7 +164,7 @@ def evaluate(path, k_samples=16384, plans=5):
     scenes, judged on the evaluated meshes (break-even errors, picks, hybrid / oracle);
     R_C's own spread over its interleaved repeats; constants fitted on each repeat alone
     (three calibrations from independent timings); five plan() runs per evaluated mesh."""
-    rows = json.loads(Path(path).read_text())
+    rows = load_rows(path)
     recs = records(rows)
     cal_recs = [r for g, r in recs if g == "calibration"]
     cal = _calibration(cal_recs)
@@ -285,7 +295,10 @@ def main(argv=None):
     ap.add_argument("--only", default="", help="measure only the scenes whose name matches this regular expression")
     ap.add_argument("--append", action="store_true",
                     help="keep the rows already in --out and add (or replace) the measured scenes: a study in short locked runs")
+    ap.add_argument("--drop", default="", help="leave the calibration scenes matching this regular expression out of the fits")
     args = ap.parse_args(argv)
+    global DROP
+    DROP = args.drop or None
     if args.agree:
         return agree(args.out, args.agree, args.kind)
     if args.analyse:

@@ -429,8 +429,7 @@ def write_markdown(path: Path, R: dict):
     counts = cal.get("counts") or {}
     if counts:
         how = ("the count models: the grid's time per ray from the work counts of K = "
-               f"{fnum(meta['samples'])} sample rays (" + " + ".join(
-                   f"{c * 1e9:.2f} ns x {t}" for t, c in zip(counts["grid"]["terms"], counts["grid"]["coef"]))
+               f"{fnum(meta['samples'])} sample rays (" + calib.CountFit(**counts["grid"]).formula()
                + "), each structure's from the same counts (`core.decide.cost.COUNT_TERMS`), its build from the "
                f"'{cal['model']}' model")
     else:
@@ -844,7 +843,7 @@ def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> di
         if g is not None:
             consts[f"{k} c_B"] = rel(f.c_B, g.c_B)
             consts[f"{k} c_R"] = rel(f.c_R, g.c_R)
-            for name in ("a_B", "a_R"):
+            for name in ("a_B", "a_R", "p_B", "p_R"):
                 if name in f.extra and name in g.extra:
                     consts[f"{k} {name}"] = rel(f.extra[name], g.extra[name])
     for k, f in cal.counts.items():
@@ -895,16 +894,20 @@ def plan_repeatability(scenes, kind: str = "bvh") -> dict:
             "scenes": len(r), "runs": max((len(s.extra.get("plan_repeats", {}).get(kind, [])) for s in scenes), default=0)}
 
 
-#: count models compared by held-out error: (grid estimate, structure's per ray, terms)
+#: count models compared by held-out error: (grid estimate, structure's per ray, grid terms,
+#: structure terms, grid form, structure form); forms as ``cost.CountFit.form``
 COUNT_VARIANTS = [
-    ("sample x ratio", "affine log2n", None, None),
-    ("counts: cells", "affine log2n", ("1", "cells"), None),
-    ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None),
-    ("sample x ratio", "counts: log2n", None, ("1", "log2n")),
-    ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n")),
-    ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n")),
-    ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs")),
-    ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs")),
+    ("sample x ratio", "affine log2n", None, None, "linear", "linear"),
+    ("counts: cells", "affine log2n", ("1", "cells"), None, "linear", "linear"),
+    ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None, "linear", "linear"),
+    ("sample x ratio", "counts: log2n", None, ("1", "log2n"), "linear", "linear"),
+    ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n"), "linear", "linear"),
+    ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n"), "linear", "linear"),
+    ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
+    ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
+    ("log counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "log", "linear"),
+    ("log counts: cells", "log counts: log2n, refs", ("1", "cells"), ("1", "log2n", "refs"), "log", "log"),
+    ("log counts: cells", "log counts: log2n", ("1", "cells"), ("1", "log2n"), "log", "log"),
 ]
 
 
@@ -912,9 +915,10 @@ def count_comparison(cal: Calibration, kind: str = "bvh", samples: int = DEFAULT
     """Leave-one-out over the calibration scenes of each count-model variant: the held-out
     break-even error and the per-ray errors of the grid and of ``kind``."""
     rows = []
-    for gname, hname, gt, ht in COUNT_VARIANTS:
+    for gname, hname, gt, ht, gf, hf in COUNT_VARIANTS:
         kw = dict(kind=kind, grid="sample" if gt is None else "counts", hds="affine" if ht is None else "counts",
-                  terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")}, samples=samples)
+                  terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")},
+                  forms_of={"grid": gf, kind: hf}, samples=samples, model=cal.model)
         loo = rep.leave_one_out([r for r in cal.scenes if r.work], **kw)
         rows.append({"grid": gname, "per_ray": hname, "loo": median_abs([x["error"] for x in loo]),
                      "grid_error": median_abs([x["grid_error"] for x in loo]),

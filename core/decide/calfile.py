@@ -176,12 +176,7 @@ class Calibration:
                 f"   c_R {f.c_R * 1e9:8.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]   ({f.scenes} scenes)"
             )
         for k, f in self.counts.items():
-            if f.form == "log":
-                body = f"{math.exp(f.coef[f.terms.index('1')]) * 1e9:.2f} ns" + "".join(
-                    f" x (1 + {t})^{c:.3f}" for t, c in zip(f.terms, f.coef) if t != "1")
-            else:
-                body = " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(f.terms, f.coef))
-            lines.append(f"  {k:7s} per ray = {body}   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
+            lines.append(f"  {k:7s} per ray = {f.formula()}   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------

@@ -10,12 +10,14 @@ so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
 t ~ c_R log2 N per ray (``model='paper'``).  ``model='affine'`` adds a fixed cost to
 each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative
 residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
-small scenes.  The interval of each constant is the spread across the calibration
+small scenes.  ``model='power'`` (the default) fits T_B ~ c_B (N log2 N)^p_B and
+t ~ c_R (log2 N)^p_R by least squares on log times.  The interval of each constant is the spread across the calibration
 scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
 after R* = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise.  ``break_even`` is
-the one place that formula is written.
+the one place that formula is written.  ``prior`` bounds R* from below with the
+calibration alone, so a plan for fewer rays need not sample at all.
 """
 
 from __future__ import annotations
@@ -229,9 +231,9 @@ def _estimate_power(fit: KindFit, kind: str, n: int) -> Estimate:
 
 
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
-#: KindFit.extra.  'affine' (issue 4, item 5) is the default: it cuts the leave-one-out
-#: break-even error on the calibration scenes and the build / per-ray errors on the real
-#: meshes (docs/report/report.md has both models side by side).
+#: KindFit.extra.  'power' (issue 14) is the default: fitted in log space it has the lowest
+#: held-out build error on the real meshes, with no fixed term that a calibration can drop
+#: (BENCHMARKS.md, issue 14; 'affine' was the default from issue 4).
 MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine),
           "power": (_fit_power, _estimate_power)}
 
@@ -303,6 +305,14 @@ class CountFit:
             return float(np.exp(_log_columns(x, self.terms)[0] @ np.asarray(self.coef, np.float64)))
         return float(sum(c * t[k] for k, c in zip(self.terms, self.coef)))
 
+    def formula(self) -> str:
+        """The model as a reader writes it, in ns: '2.1 ns x 1 + 0.1 ns x cells' or
+        '919 ns x (1 + cells)^0.624'."""
+        if self.form == "log":
+            scale = math.exp(self.coef[self.terms.index("1")]) * 1e9
+            return f"{scale:.2f} ns" + "".join(f" x (1 + {t})^{c:.3f}" for t, c in zip(self.terms, self.coef) if t != "1")
+        return " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(self.terms, self.coef))
+
     @classmethod
     def fit(cls, rows, names, spread=DEFAULT_SPREAD, form: str = "linear") -> "CountFit":
         """rows: (triangles, work dict, measured time per ray) per scene."""
@@ -328,12 +338,10 @@ class CountFit:
 
 
 #: the terms of each count model (``terms``): the grid's time per ray from the cells it
-#: steps through (plus a fixed cost per ray); the numpy BVH's from log2 N and the grid
-#: sample's cells and references (how much of the scene a ray passes near); Embree's from
-#: log2 N.  Chosen by leave-one-out error over the calibration scenes (issue 14,
-#: scripts/counts_study.py on 20 calibration scenes: with these, 38.9% against the numpy
-#: BVH and 24.0% against Embree, against 74.3% and 57.6% for the timed sample x ratio with
-#: a + c log2 N; measured at load 7-8 on 2 cores, so every figure carries that noise).
+#: steps through; the numpy BVH's from log2 N and the grid sample's cells and references
+#: (how much of the scene a ray passes near); Embree's from log2 N.  Terms and forms
+#: (``COUNT_FORMS``) are the ones with the lowest held-out break-even error in
+#: scripts/counts_study.py (--analyse; BENCHMARKS.md, issue 14, has the table).
 COUNT_TERMS = {
     "grid": ("1", "cells"),
     "bvh": ("1", "log2n", "cells", "refs"),
@@ -341,7 +349,9 @@ COUNT_TERMS = {
 }
 
 
-#: the form of each count model (``CountFit.form``)
+#: the form of each count model (``CountFit.form``): power laws for the grid and Embree
+#: (fixed terms, so two calibrations fit the same model); the numpy BVH's stays a
+#: nonnegative sum, whose held-out error the log form did not beat (BENCHMARKS.md, issue 14)
 COUNT_FORMS = {"grid": "log", "bvh": "linear", "embree": "log"}
 
 

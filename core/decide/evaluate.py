@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from .cost import DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, break_even, log2n, nlog2n
+from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, break_even, log2n, nlog2n
 from .rule import REUSES_SAMPLES, choose
 
 #: the ray counts of the speedup tables: 1e3 to 1e8, four points a decade
@@ -477,7 +477,7 @@ def _ratio_of(records, k: int) -> float:
 
 
 def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: str = "counts", terms_of=None,
-                    model: str = "affine", samples: int = 16384, forms_of=None) -> list[dict]:
+                    model: str = DEFAULT_MODEL, samples: int = 16384, forms_of=None) -> list[dict]:
     """Fit on ``train`` (SceneRecords), estimate each of ``test`` and compare its break-even
     with the one measured in its own record.
 

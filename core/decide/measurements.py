@@ -25,7 +25,7 @@ from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break
 #: rays per scene for each calibration scale.  The default is two chunks of the BVH
 #: (2 x 65,536 rays), so that the measured time per ray is a large workload's, spread
 #: over the structure's threads like one
-RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17}
+RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17, "rich": 1 << 17}
 #: sample sizes K at which calibration times the grid on each scene, to correct a plan's
 #: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
 SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
