@@ -153,6 +153,7 @@ def test_log_count_fit_recovers_an_exact_power_law_and_predicts_it():
     assert f.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
     assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
     assert f.predict(1 << 20, {"cells": 99, "refs": 15}) == pytest.approx(3e-7 * 100 ** 0.6 * 16 ** 0.25, rel=1e-9)
+    assert f.formula() == "300.00 ns x (1 + cells)^0.600 x (1 + refs)^0.250"
     with pytest.raises(ValueError, match="form"):
         cost.CountFit.fit(rows, ("1", "cells"), form="cubic")
     with pytest.raises(ValueError, match="'1'"):
