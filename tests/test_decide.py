@@ -181,6 +181,17 @@ def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
     assert e.build_low <= e.build <= e.build_high
 
 
+def test_power_model_on_close_sizes_is_the_affine_fit():
+    """Sizes within a decade of N log2 N cannot measure an exponent: the power model's build
+    is the affine least squares there (exact on affine data), p_B = 1."""
+    recs = [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(1e-3 + 2e-8 * cost.nlog2n(n), 1000 * 1e-7 * math.log2(n) ** 0.8, 1000)})
+            for n in (500, 600, 700, 850, 1000)]
+    f = cost.fit(recs, ("bvh",), model="power")["bvh"]
+    assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8, 1.0), rel=1e-6)
+    e = cost.MODELS["power"][1](f, "bvh", 20000)
+    assert e.build == pytest.approx(1e-3 + 2e-8 * cost.nlog2n(20000), rel=1e-6)
+
+
 def _lawful_records(ns=(1000, 4000, 16000, 64000, 256000)):
     """Calibration records that follow exact power laws: grid 1e-7 N^0.25 s a ray, the BVH
     gaining half of that, its build 5e-8 (N log2 N)^1.05."""

@@ -188,6 +188,12 @@ def _estimate_affine(fit: KindFit, kind: str, n: int) -> Estimate:
                     a_r + fit.c_R * y, a_r + fit.c_R_low * y, a_r + fit.c_R_high * y)
 
 
+def _spans(x, min_ratio: float) -> bool:
+    """Whether the positive x span a ratio of at least ``min_ratio`` (and are not all equal)."""
+    x = np.asarray([v for v in x if v > 0], np.float64)
+    return x.size >= 3 and float(np.ptp(np.log(x))) >= math.log(min_ratio) and np.ptp(x) > 0
+
+
 def _loglog_fit(x, y) -> tuple[float, float]:
     """(c, p) of y ~ c x^p by least squares on log y (every residual is a relative one, and
     there is no sign constraint that could drop or keep a term between two calibrations);
@@ -201,33 +207,55 @@ def _loglog_fit(x, y) -> tuple[float, float]:
     return float(np.exp(a)), float(p)
 
 
+#: the spread of x a power law's exponent needs: a decade of N log2 N for builds, 1.5 for
+#: per-ray times in log2 N (about 1k to 30k triangles).  Narrower calibration sets get the
+#: affine fit (p = 1): the 'tiny' set's 500-1,000 triangles gave p_B near 0 and then a
+#: 20k-triangle scene an Embree break-even of 40 rays
+POWER_MIN_RATIO = {"build": 10.0, "per_ray": 1.5}
+
+
+def _power_or_affine(x, y, min_ratio: float) -> tuple[float, float, float]:
+    """(a, c, p) of y ~ a + c x^p: the log-space power law (a = 0) where x spans
+    ``min_ratio``, else the affine least squares (p = 1)."""
+    if _spans(x, min_ratio):
+        c, p = _loglog_fit(x, y)
+        return 0.0, c, p
+    a, c = _affine_lsq(x, y)
+    return a, c, 1.0
+
+
 def _fit_power(records: list[SceneRecord], kind: str, spread) -> KindFit:
     """T_B ~ c_B (N log2 N)^p_B and t ~ c_R (log2 N)^p_R, fitted in log space: a power law
     bends where the affine model needs a fixed term, and with no constraint to switch on or
     off its constants move smoothly with the timings (issue 14: two calibrations in a row
-    gave affine build constants 90% apart).  The interval scales c by the spread of
-    measured / fitted over the scenes."""
+    gave affine build constants 90% apart).  Where the calibration scenes' sizes are too
+    close to measure an exponent (``POWER_MIN_RATIO``) it is the affine model.  The interval
+    scales c by the spread of measured / fitted over the scenes."""
     have = [r for r in records if kind in r.kinds]
     xb, yb = [nlog2n(r.triangles) for r in have], [r.kinds[kind].build_time for r in have]
     xr, yr = [log2n(r.triangles) for r in have], [r.kinds[kind].per_ray for r in have]
-    cb, pb = _loglog_fit(xb, yb)
-    cr, pr = _loglog_fit(xr, yr)
+    ab, cb, pb = _power_or_affine(xb, yb, POWER_MIN_RATIO["build"])
+    ar, cr, pr = _power_or_affine(xr, yr, POWER_MIN_RATIO["per_ray"])
 
-    def spread_of(x, y, c, p):
-        q = [yi / (c * xi ** p) for xi, yi in zip(x, y) if c > 0 and yi > 0]
+    def spread_of(x, y, a, c, p):
+        q = [yi / (a + c * xi ** p) for xi, yi in zip(x, y) if a + c * xi ** p > 0 and yi > 0]
         if not q:
             return [1.0, 1.0]
         lo, hi = (float(v) for v in np.percentile(q, spread))
         return [min(lo, 1.0), max(hi, 1.0)]
 
-    qb, qr = spread_of(xb, yb, cb, pb), spread_of(xr, yr, cr, pr)
-    return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have), extra={"p_B": pb, "p_R": pr})
+    qb, qr = spread_of(xb, yb, ab, cb, pb), spread_of(xr, yr, ar, cr, pr)
+    return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have),
+                   extra={"p_B": pb, "p_R": pr, "a_B": ab, "a_R": ar})
 
 
 def _estimate_power(fit: KindFit, kind: str, n: int) -> Estimate:
+    """a + c x^p with the interval on c (a = 0 where the exponent was fitted)."""
     x, y = nlog2n(n), log2n(n)
     xb, yr = x ** fit.extra.get("p_B", 1.0), y ** fit.extra.get("p_R", 1.0)
-    return Estimate(kind, fit.c_B * xb, fit.c_B_low * xb, fit.c_B_high * xb, fit.c_R * yr, fit.c_R_low * yr, fit.c_R_high * yr)
+    a_b, a_r = fit.extra.get("a_B", 0.0), fit.extra.get("a_R", 0.0)
+    return Estimate(kind, a_b + fit.c_B * xb, a_b + fit.c_B_low * xb, a_b + fit.c_B_high * xb,
+                    a_r + fit.c_R * yr, a_r + fit.c_R_low * yr, a_r + fit.c_R_high * yr)
 
 
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
@@ -377,8 +405,9 @@ FLOOR_MARGIN = 0.5
 
 def _power_envelope(x, y, side: str) -> tuple[float, float]:
     """(c, p) with y_i >= c x_i^p for all i (side 'low') or <= (side 'high'): the log-space
-    power law through the points, shifted to their lowest / highest ratio."""
-    c, p = _loglog_fit(x, y)
+    power law through the points, shifted to their lowest / highest ratio; with x spanning
+    less than a decade, p = 1 (an exponent from close sizes would not extrapolate)."""
+    c, p = _loglog_fit(x, y) if _spans(x, 10.0) else (float(np.mean(np.asarray(y) / np.asarray(x))), 1.0)
     q = [yi / (c * xi ** p) for xi, yi in zip(x, y) if yi > 0 and xi > 0]
     if not q or c <= 0:
         return 0.0, 1.0
