@@ -11,8 +11,8 @@ t ~ c_R log2 N per ray (``model='paper'``).  ``model='affine'`` adds a fixed cos
 each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative
 residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
 small scenes.  ``model='power'`` (the default) fits T_B ~ c_B (N log2 N)^p_B and
-t ~ c_R (log2 N)^p_R by least squares on log times.  The interval of each constant is the spread across the calibration
-scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
+t ~ c_R (log2 N)^p_R by least squares on log times.  The interval of each constant is
+the spread across the calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
 after R* = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise.  ``break_even`` is
