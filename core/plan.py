@@ -142,7 +142,7 @@ class Plan:
     #: sample rays that came from the workload and whose answers the plan keeps
     workload_samples: int = 0
     #: the calibration's lower bound on the break-even (0: none); a plan for fewer rays
-    #: keeps the grid without sampling (``Calibration.break_even_floor``)
+    #: keeps the grid without sampling (``Calibration.prior``)
     break_even_floor: float = 0.0
     estimate_time: float = 0.0
     plan_time: float = 0.0
@@ -299,6 +299,7 @@ def plan_from_timings(
     per_ray: dict | None = None,
     unavailable: dict | None = None,
     notes=(),
+    floor: float = 0.0,
 ) -> Plan:
     """The plan's arithmetic alone, from a measured grid and the calibration.
 
@@ -310,7 +311,8 @@ def plan_from_timings(
     R - answered rays for the grid and the structures in REUSES_SAMPLES, R for the others
     (the break-even figures still count a workload's rays from zero).  per_ray:
     {kind: (point, low, high)} time per ray of a candidate from elsewhere (the count
-    model) instead of the calibration's estimate for N.
+    model) instead of the calibration's estimate for N.  floor: the calibration's lower
+    bound on the break-even (``Calibration.prior``); at most this many rays keep the grid.
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
@@ -352,7 +354,7 @@ def plan_from_timings(
     answered = max(0, int(answered))
     if answered and r <= answered:
         notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
-    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered)[0])
+    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered, floor)[0])
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
@@ -361,6 +363,7 @@ def plan_from_timings(
         grid_per_ray=float(grid_per_ray), candidates=cands, break_even=be, break_even_low=be_low,
         break_even_high=be_high, break_even_kind=be_kind, decision=decision.upper(), certain=certain,
         calibration_source=calibration.source, notes=notes, unavailable=unavailable,
+        break_even_floor=float(floor),
     )
 
 
@@ -410,7 +413,7 @@ def plan(
     grid: an already built grid over ``mesh`` to reuse (its build time is reported).
     grid_config / configs: build options for the grid / {kind: options} for the others.
     prior: skip the sample when ``expected_rays`` is below the calibration's floor on the
-    break-even (``Calibration.break_even_floor``): the grid wins there whatever the sample says.
+    break-even (``Calibration.prior``): the grid wins there whatever the sample says.
     """
     t0 = time.perf_counter()
     _check_expected(expected_rays)
@@ -468,9 +471,8 @@ def plan(
     p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), g,
                           grid_per_ray_low=g_lo, grid_per_ray_high=g_hi, kinds=kinds, samples=k,
                           answered=k if idx is not None else 0, per_ray=per_ray, unavailable=unavailable,
-                          notes=notes)
+                          notes=notes, floor=floor)
     p.grid_sample_per_ray = t_sample if k else 0.0
-    p.break_even_floor = floor
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work
     if work is not None:

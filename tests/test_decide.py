@@ -54,6 +54,15 @@ def test_choose_with_answered_samples_weighs_the_rays_left_and_embree_retraces_a
     assert rule.choose([800], 4e-6, {"bvh": (0.0, 1e-6)}, answered=1000)[0] == "grid"  # nothing left to trace
 
 
+def test_choose_keeps_the_grid_at_or_below_the_floor_whatever_the_costs():
+    # bvh is cheaper from 33,334 rays on (R* = 33,333.3); a floor of 50,000 overrides that
+    # up to and including 50,000 rays, and changes nothing above it
+    cands = {"bvh": (0.1, 1e-6)}
+    got = rule.choose([1_000, 33_334, 50_000, 50_001], 4e-6, cands, floor=50_000)
+    assert list(got) == ["grid", "grid", "grid", "bvh"]
+    assert list(rule.choose([33_334, 50_000], 4e-6, cands)) == ["bvh", "bvh"]
+
+
 def test_plan_and_evaluation_decide_through_the_one_rule():
     """The plan's decision and the evaluation's hybrid are the rule applied to their figures
     (hand numbers: N = 1024, bvh 0.1024 s + 0.5 us/ray, grid 2 us/ray: R* = 68,266.7)."""

@@ -177,7 +177,7 @@ def hybrid_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision for each ray count (array of names), K samples apart from the
     workload: ``rule.choose`` on the estimated costs."""
     est = {k: (s.estimated[k].build, s.estimated[k].per_ray) for k in kinds if k in s.estimated}
-    return np.where(np.atleast_1d(rays) <= s.floor, "grid", choose(rays, s.grid_estimate_per_ray, est)).astype(object)
+    return choose(rays, s.grid_estimate_per_ray, est, floor=s.floor)
 
 
 def online_switch(s: SceneResult, kind: str = "bvh", batch: int = 1 << 15) -> float:
@@ -209,8 +209,7 @@ def hybrid_reuse_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision when its K samples are K of the workload's R rays:
     ``rule.choose`` with ``answered=K``."""
     est = {k: (s.estimated[k].build, s.estimated[k].per_ray) for k in kinds if k in s.estimated}
-    c = choose(rays, s.grid_estimate_per_ray, est, answered=s.samples)
-    return np.where(np.atleast_1d(rays) <= s.floor, "grid", c).astype(object)
+    return choose(rays, s.grid_estimate_per_ray, est, answered=s.samples, floor=s.floor)
 
 
 def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]:
