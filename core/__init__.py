@@ -14,7 +14,7 @@ from .mesh import TriangleMesh
 from .objio import load_obj
 from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, uniform_rays
-from . import calibration, decide  # calibration: compatibility name (core.calibration.X)
+from . import decide
 from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
 from .plan import Plan, plan, ski_rental, trace_online
 from .multihit import all_hits

@@ -231,7 +231,7 @@ def _config_key(kind: str, configs: dict | None, threads: int) -> tuple:
 def _choose(scene: SceneRef, m: int, expected_rays, calibration, configs: dict | None):
     """(kind, Plan): core.plan over the scene, once, on the client, for ``expected_rays``
     (default ``m``, the rays given).  No rays and no budget: the grid, unplanned."""
-    from .calibration import Calibration, load_or_default
+    from .decide import Calibration, load_or_default
     from .plan import plan
 
     if expected_rays is None:

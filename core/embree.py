@@ -46,12 +46,13 @@ given to Embree, and Embree's primID is mapped back to the mesh's triangle index
 from __future__ import annotations
 
 import importlib.util
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from .accel import Accel
 from .hits import Hits
-from .intersect import Rays
+from .intersect import Rays, prepare_rays
 
 F32 = np.float32
 #: how often a hit at exactly the (moved) origin is re-traced from a little further on
@@ -142,6 +143,84 @@ class EmbreeAccel(Accel):
         one = np.zeros((1, 3), F32)
         self.scene.run(one, one + F32(1.0), dists=np.zeros(1, F32))
 
+    # -- the batch: validated chunk by chunk on the pool, written into one output -----------
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
+        """``Accel.trace`` (same hits, same errors), except that each chunk's rays are
+        validated inside its pool task and its hits written into one preallocated output:
+        embreex leaves so little work per ray that a serial validation of the whole batch
+        and a serial concatenation are a visible share of a threaded trace.
+
+        The four arrays of the Hits are rows of one (4, M) block: numpy asks Linux for huge
+        pages for an allocation of 4 MiB or more (``madvise(MADV_HUGEPAGE)`` in numpy's
+        ``alloc.c``; ``np.core.multiarray._get_madvise_hugepage()`` says whether it is on),
+        which four separate (M,) arrays of 1M rays each just miss, so the output costs a few
+        page faults instead of one per 4 KiB (BENCHMARKS.md).  Keeping one of the arrays
+        keeps the whole block alive."""
+        batch = self._batch(origins, directions, tmin, tmax)
+        if batch is None:
+            return super().trace(origins, directions, tmin, tmax)
+        m, prepare = batch
+        block = np.empty((4, m), F32)
+        out = Hits(block[0], block[1].view(np.int32), block[2], block[3])
+
+        def chunk(a, b):
+            h = self._trace_rays(prepare(a, b))
+            out.t[a:b], out.triangle[a:b], out.u[a:b], out.v[a:b] = h.t, h.triangle, h.u, h.v
+
+        self._each_chunk(chunk, m, origins, directions, tmin, tmax)
+        return out
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """``Accel.occluded``, chunked as ``trace``."""
+        batch = self._batch(origins, directions, tmin, tmax)
+        if batch is None:
+            return super().occluded(origins, directions, tmin, tmax)
+        m, prepare = batch
+        out = np.empty(m, bool)
+
+        def chunk(a, b):
+            out[a:b] = self._occluded_rays(prepare(a, b))
+
+        self._each_chunk(chunk, m, origins, directions, tmin, tmax)
+        return out
+
+    def _batch(self, origins, directions, tmin, tmax):
+        """(M, prepare) where ``prepare(a, b)`` is ``prepare_rays`` (no shear) of rays a..b;
+        None when the whole-batch path must answer: no scene, no rays, or arguments whose
+        shapes ``prepare_rays`` reshapes or refuses (a single (3,) ray, mismatched shapes)."""
+        if self.scene is None:
+            return None
+        o, d, lo, hi = np.asarray(origins), np.asarray(directions), np.asarray(tmin), np.asarray(tmax)
+        if o.ndim != 2 or o.shape[1:] != (3,) or d.shape != o.shape or len(o) == 0:
+            return None
+        m = len(o)
+        if any(x.ndim > 1 or (x.ndim == 1 and x.shape != (m,)) for x in (lo, hi)):
+            return None
+
+        def prepare(a, b):
+            return prepare_rays(o[a:b], d[a:b], lo if lo.ndim == 0 else lo[a:b], hi if hi.ndim == 0 else hi[a:b],
+                                shear=False)
+
+        return m, prepare
+
+    def _each_chunk(self, fn, m, *args):
+        """``fn(a, b)`` for every chunk, on the pool when there are several.  Validity is per
+        ray, so a chunk's ValueError means the whole batch is invalid: ``prepare_rays`` then
+        names the bad rays by their index in the batch, as ``Accel.trace`` would."""
+        bounds = [(a, min(m, a + self.chunk_size)) for a in range(0, m, self.chunk_size)]
+        try:
+            if self.threads <= 1 or len(bounds) == 1:
+                for a, b in bounds:
+                    fn(a, b)
+            else:
+                with ThreadPoolExecutor(self.threads) as pool:
+                    for _ in pool.map(lambda ab: fn(*ab), bounds):
+                        pass
+        except ValueError:
+            prepare_rays(*args, shear=False)
+            raise
+
+    # -- embreex calls ------------------------------------------------------------------
     def _run(self, origins, directions, tfar, query):
         """One embreex call; origins/directions (P, 3) float32, tfar (P,) float32."""
         o = np.ascontiguousarray(origins, dtype=F32)
@@ -173,12 +252,18 @@ class EmbreeAccel(Accel):
         and the indices of the rays whose nearest hit is at exactly t = 0."""
         r = self._run(rays.origins, rays.directions, rays.tmax, "INTERSECT")
         prim, tfar = r["primID"], r["tfar"]
-        good = (prim >= 0) & (tfar > 0)
+        hit = prim >= 0
+        at_zero = hit & (tfar <= 0)
+        any_at_zero = at_zero.any()
+        good = hit & ~at_zero if any_at_zero else hit
         zero = np.float32(0)
-        hits = Hits(np.where(good, tfar, np.float32(np.inf)), np.where(good, self._triangles(prim), np.int32(-1)),
-                    np.where(good, r["u"], zero), np.where(good, r["v"], zero))
-        at_zero = (prim >= 0) & (tfar <= 0)
-        return hits, (np.flatnonzero(at_zero) if at_zero.any() else None)
+        # embreex's primID is already -1 on a miss, u and v are whatever the previous ray left
+        # (embreex rtcore_scene.pyx, EmbreeScene.run: one RTCRayHit reused for every ray)
+        triangle = (prim if self._remap is None and not any_at_zero
+                    else np.where(good, self._triangles(prim), np.int32(-1)))
+        hits = Hits(np.where(good, tfar, np.float32(np.inf)), triangle, np.where(good, r["u"], zero),
+                    np.where(good, r["v"], zero))
+        return hits, (np.flatnonzero(at_zero) if any_at_zero else None)
 
     def _trace_from_origin(self, rays: Rays, idx, out: Hits):
         """Rays ``idx`` as given over [0, tmax] into ``out``; returns the indices of those

@@ -22,6 +22,10 @@ grid or the numpy BVH, which agree bit for bit; Embree retraces everything), and
 decision weighs only the rays left.  A workload of at most K rays is therefore answered
 whole while planning, and the plan keeps the grid: nothing is left to build for.
 
+Before any sample, the calibration alone bounds R* from below (``Calibration.prior``: the
+lowest build over the largest gain per ray of any calibration scene, halved): for fewer
+expected rays the grid wins whatever a sample would say, so the plan takes none.
+
 Online mode (``trace_online``), which needs no ray count: trace with the grid in batches
 and switch to H once the grid's accumulated trace time reaches H's estimated build
 time, the ski-rental rule (Karlin et al. 1988), which is never worse than about twice
@@ -40,7 +44,7 @@ from .accel import Accel
 from .factory import build
 from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
-from .decide.measurements import _prepare, available_kinds, time_trace, unavailable_reason
+from .decide.measurements import prepare_mesh, available_kinds, time_trace, unavailable_reason
 from .decide.rule import REUSES_SAMPLES, choose
 from .decide.work import grid_work
 from .hits import Hits
@@ -137,6 +141,9 @@ class Plan:
     work: dict | None = None
     #: sample rays that came from the workload and whose answers the plan keeps
     workload_samples: int = 0
+    #: the calibration's lower bound on the break-even (0: none); a plan for fewer rays
+    #: keeps the grid without sampling (``Calibration.prior``)
+    break_even_floor: float = 0.0
     estimate_time: float = 0.0
     plan_time: float = 0.0
     grid_reused: bool = False
@@ -177,6 +184,7 @@ class Plan:
             "break_even_high": _json_float(self.break_even_high), "break_even_kind": self.break_even_kind,
             "decision": self.decision, "certain": self.certain, "grid_sample_per_ray": self.grid_sample_per_ray,
             "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
+            "break_even_floor": self.break_even_floor,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
@@ -291,6 +299,7 @@ def plan_from_timings(
     per_ray: dict | None = None,
     unavailable: dict | None = None,
     notes=(),
+    floor: float = 0.0,
 ) -> Plan:
     """The plan's arithmetic alone, from a measured grid and the calibration.
 
@@ -302,7 +311,8 @@ def plan_from_timings(
     R - answered rays for the grid and the structures in REUSES_SAMPLES, R for the others
     (the break-even figures still count a workload's rays from zero).  per_ray:
     {kind: (point, low, high)} time per ray of a candidate from elsewhere (the count
-    model) instead of the calibration's estimate for N.
+    model) instead of the calibration's estimate for N.  floor: the calibration's lower
+    bound on the break-even (``Calibration.prior``); at most this many rays keep the grid.
     """
     r = _check_expected(expected_rays)
     notes = list(notes)
@@ -344,7 +354,7 @@ def plan_from_timings(
     answered = max(0, int(answered))
     if answered and r <= answered:
         notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
-    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered)[0])
+    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered, floor)[0])
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
@@ -353,6 +363,7 @@ def plan_from_timings(
         grid_per_ray=float(grid_per_ray), candidates=cands, break_even=be, break_even_low=be_low,
         break_even_high=be_high, break_even_kind=be_kind, decision=decision.upper(), certain=certain,
         calibration_source=calibration.source, notes=notes, unavailable=unavailable,
+        break_even_floor=float(floor),
     )
 
 
@@ -392,6 +403,7 @@ def plan(
     grid_config: dict | None = None,
     configs: dict | None = None,
     seed: int = 0,
+    prior: bool = True,
 ) -> Plan:
     """Build (or reuse) the grid, time K sample rays through it, and decide.
 
@@ -400,6 +412,8 @@ def plan(
     sampled.  Without it K uniform random rays (the paper's distribution) are used.
     grid: an already built grid over ``mesh`` to reuse (its build time is reported).
     grid_config / configs: build options for the grid / {kind: options} for the others.
+    prior: skip the sample when ``expected_rays`` is below the calibration's floor on the
+    break-even (``Calibration.prior``): the grid wins there whatever the sample says.
     """
     t0 = time.perf_counter()
     _check_expected(expected_rays)
@@ -413,7 +427,7 @@ def plan(
     kinds, skipped = available_kinds(kinds)
     notes += skipped
     k = max(1, int(samples))
-    _prepare(mesh)
+    prepare_mesh(mesh)
     if grid is None:
         grid = build(mesh, "grid", **(grid_config or {}))
         reused = False
@@ -423,7 +437,21 @@ def plan(
         reused = True
     t1 = time.perf_counter()
     sample, idx = None, None
-    if mesh.triangle_count:
+    cands = [kk for kk in kinds if kk != "grid" and kk in calibration.fits]
+    pri = calibration.prior(mesh.triangle_count, cands) if prior and mesh.triangle_count and cands else None
+    floor = pri.floor if pri is not None else 0.0
+    per_ray = {}
+    if floor and _check_expected(expected_rays) <= floor:
+        # too few rays for any structure to pay back its build on this calibration's
+        # evidence: the grid wins without a sample, and the sample's cost is saved.  The
+        # figures are the prior's (slowest grid, largest gain), under which the one rule
+        # below picks the grid too
+        k, what, t_sample = 0, "none", pri.grid_per_ray
+        per_ray = {kk: (t, t, t) for kk, t in pri.per_ray.items()}
+        notes.append(f"{float(expected_rays):,.0f} expected rays are below the calibration's floor on the break-even "
+                     f"({floor:,.0f}): the grid wins without sampling; its time per ray and the gains are the "
+                     f"calibration's extremes")
+    elif mesh.triangle_count:
         o, d, tmin, tmax, what, idx = _sample_rays(mesh, rays, k, seed)
         sample, dt = time_trace(grid, o, d, tmin, tmax)
         k = len(o)
@@ -432,7 +460,7 @@ def plan(
         k, t_sample, what = 0, 0.0, "none"
     ratio, ratio_lo, ratio_hi = calibration.grid_sample_ratio(k) if k else (1.0, 1.0, 1.0)
     g, g_lo, g_hi = t_sample * ratio, t_sample * ratio_lo, t_sample * ratio_hi
-    work, per_ray = None, {}
+    work = None
     if k and calibration.counts.get("grid") is not None:
         # counts instead of the sample's time: the same rays through the same grid give the
         # same counts, so the estimate repeats exactly with a fixed calibration
@@ -443,14 +471,14 @@ def plan(
     p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), g,
                           grid_per_ray_low=g_lo, grid_per_ray_high=g_hi, kinds=kinds, samples=k,
                           answered=k if idx is not None else 0, per_ray=per_ray, unavailable=unavailable,
-                          notes=notes)
-    p.grid_sample_per_ray = t_sample
+                          notes=notes, floor=floor)
+    p.grid_sample_per_ray = t_sample if k else 0.0
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work
     if work is not None:
         p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells, "
                        f"{work['refs']:.1f} references per ray; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
-    elif rays is not None or k:
+    elif k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
                        f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")
     if idx is not None and k:

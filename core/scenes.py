@@ -258,6 +258,32 @@ def slivers(n: int = 20000, seed=0, span: float = 1.0) -> TriangleMesh:
     return _mesh(v, np.arange(3 * n).reshape(n, 3))
 
 
+def clusters(n: int = 20000, seed=0, count: int = 12) -> TriangleMesh:
+    """Triangle soup in ``count`` Gaussian clusters of random size (sigma 0.02-0.12) in an
+    otherwise empty unit cube: dense pockets in empty space, the case uniform grids handle
+    worst (most cells empty, a few overfull)."""
+    rng = _rng(seed)
+    n = max(1, int(n))
+    centre = 0.1 + 0.8 * rng.random((count, 3))
+    sigma = np.exp(rng.uniform(np.log(0.02), np.log(0.12), count))
+    which = rng.integers(0, count, n)
+    c = centre[which] + sigma[which, None] * rng.standard_normal((n, 3))
+    size = 0.6 * sigma[which] * (n / count) ** (-1 / 3) * 4
+    v = c[:, None, :] + size[:, None, None] * (rng.random((n, 3, 3)) - 0.5)
+    return _mesh(v.reshape(-1, 3), np.arange(3 * n).reshape(n, 3))
+
+
+def sizes(n: int = 20000, seed=0) -> TriangleMesh:
+    """Random triangles in the unit cube whose sizes spread over three decades (log-uniform
+    edge from 1e-3 to 1): a few large ones overlap many cells and many rays, most are small."""
+    rng = _rng(seed)
+    n = max(1, int(n))
+    edge = np.exp(rng.uniform(np.log(1e-3), 0.0, n))
+    c = rng.random((n, 1, 3))
+    v = c + edge[:, None, None] * (rng.random((n, 3, 3)) - 0.5)
+    return _mesh(v.reshape(-1, 3), np.arange(3 * n).reshape(n, 3))
+
+
 #: every generator by name: ``SCENES[name](n, seed) -> TriangleMesh``
 SCENES = {
     "sphere": sphere,
@@ -268,6 +294,8 @@ SCENES = {
     "scatter": scatter,
     "stadium": stadium,
     "slivers": slivers,
+    "clusters": clusters,
+    "sizes": sizes,
 }
 
 
@@ -306,6 +334,11 @@ _SETS = {
                 ("stadium", 3000), ("stadium", 500000),
                 ("slivers", 800, {"span": 0.1}), ("slivers", 5000, {"span": 0.1})],
 }
+#: 'rich' (issue 14): 'default' plus what it lacks, dense clusters in empty space, sizes
+#: spread over three decades, and longer slivers (a third of the scene)
+_SETS["rich"] = _SETS["default"] + [("clusters", 3000), ("clusters", 80000), ("clusters", 400000),
+                                    ("sizes", 2000), ("sizes", 50000), ("slivers", 2000, {"span": 0.3}),
+                                    ("scatter", 1500), ("city", 600000)]
 SCALES = tuple(_SETS)
 
 

@@ -93,6 +93,22 @@ def _azimuth_deg(d):
     return (np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 360.0).astype(np.float32)
 
 
+def _fan(elevation, azimuth, *, azimuth_major):
+    """Unit directions (N, 3) float64 for every pair of ``elevation`` x ``azimuth`` angles
+    (radians; azimuth 0 is +X growing towards +Y, elevation up towards +Z), and each ray's
+    ring (N,) int32, the index of its elevation.  Order: azimuth-major (every elevation of
+    one azimuth, then the next) or elevation-major (one row of azimuths per elevation)."""
+    ce, se = np.cos(elevation), np.sin(elevation)
+    d = np.empty((len(elevation), len(azimuth), 3))
+    d[..., 0] = ce[:, None] * np.cos(azimuth)[None, :]
+    d[..., 1] = ce[:, None] * np.sin(azimuth)[None, :]
+    d[..., 2] = se[:, None]
+    ring = np.broadcast_to(np.arange(len(elevation), dtype=np.int32)[:, None], d.shape[:2])
+    if azimuth_major:
+        d, ring = d.transpose(1, 0, 2), ring.T
+    return d.reshape(-1, 3), ring.reshape(-1).copy()
+
+
 @dataclass
 class RotatingLidar:
     """A spinning multi-beam LiDAR (module doc).  Angles in degrees, ranges in metres."""
@@ -135,19 +151,14 @@ class RotatingLidar:
         return np.linspace(self.fov_down, self.fov_up, self.channels)
 
     def pattern(self) -> Pattern:
-        elev = np.radians(self.elevation_angles())
         n_az = self.azimuth_steps
         az = np.arange(n_az) * (2.0 * np.pi / n_az)
         # azimuth-major order: all channels of one firing, then the next azimuth
-        ce, se = np.cos(elev)[None, :], np.sin(elev)[None, :]
-        d = np.empty((n_az, self.channels, 3))
-        d[..., 0] = np.cos(az)[:, None] * ce
-        d[..., 1] = np.sin(az)[:, None] * ce
-        d[..., 2] = se
-        ring = np.broadcast_to(np.arange(self.channels, dtype=np.int32)[None, :], (n_az, self.channels))
-        azimuth = np.broadcast_to(np.degrees(az).astype(np.float32)[:, None], (n_az, self.channels))
-        t = np.broadcast_to((np.arange(n_az) / (n_az * self.rotation_rate))[:, None], (n_az, self.channels))
-        return Pattern(d.reshape(-1, 3), ring.reshape(-1).copy(), azimuth.reshape(-1).copy(), t.reshape(-1).copy())
+        d, ring = _fan(np.radians(self.elevation_angles()), az, azimuth_major=True)
+        shape = (n_az, self.channels)
+        azimuth = np.broadcast_to(np.degrees(az).astype(np.float32)[:, None], shape)
+        t = np.broadcast_to((np.arange(n_az) / (n_az * self.rotation_rate))[:, None], shape)
+        return Pattern(d, ring, azimuth.reshape(-1).copy(), t.reshape(-1).copy())
 
 
 @dataclass
@@ -176,14 +187,8 @@ class AreaScanner:
 
         az = centres(self.h_fov, self.h_steps)[::-1]        # left (+Y) to right
         el = centres(self.v_fov, self.v_steps)[::-1]        # top to bottom
-        ce, se = np.cos(el)[:, None], np.sin(el)[:, None]
-        d = np.empty((self.v_steps, self.h_steps, 3))
-        d[..., 0] = ce * np.cos(az)[None, :]
-        d[..., 1] = ce * np.sin(az)[None, :]
-        d[..., 2] = np.broadcast_to(se, (self.v_steps, self.h_steps))
-        n = self.v_steps * self.h_steps
-        ring = np.repeat(np.arange(self.v_steps, dtype=np.int32), self.h_steps)
-        d = d.reshape(-1, 3)
+        d, ring = _fan(el, az, azimuth_major=False)         # rows of azimuths, top row first
+        n = len(d)
         return Pattern(d, ring, _azimuth_deg(d), np.arange(n) / (n * self.frame_rate))
 
 

@@ -51,7 +51,7 @@ def load_calibration():
     return cal, message, path
 
 
-def calibration_job(job: Job, *, scale: str = "quick", path=None):
+def calibration_job(job: Job, *, scale: str = "default", path=None):
     """Generator: calibrate the candidates that can be built here, save, return the result."""
     if scale not in core.decide.RAYS_PER_SCENE:
         raise BadInput(f"unknown calibration scale {scale!r}; expected one of {', '.join(core.decide.RAYS_PER_SCENE)}")

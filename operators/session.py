@@ -210,7 +210,7 @@ class Session:
         k = (kind, tuple(sorted(config.items())))
         acc = self.structures.get(k)
         if acc is None:
-            core.calibration._prepare(self.mesh)
+            core.decide.prepare_mesh(self.mesh)
             acc = self.structures[k] = core.build(self.mesh, kind, **config)
         return acc
 

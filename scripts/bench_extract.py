@@ -1,6 +1,7 @@
 """Benchmark: Blender scene -> TriangleMesh extraction (operators/extract.py).
 
     cd /work/main && .venv/bin/python scripts/bench_extract.py [--runs 5] [--level 4]
+    .venv/bin/python scripts/bench_extract.py --scale 10m     # ~10M triangles: time, rate and peak memory
 
 Scenes (about 1M triangles each):
   linked     a Suzanne with a Subdivision Surface modifier (level 4: 251,904 triangles)
@@ -15,6 +16,13 @@ so a first "cold" extraction is run and reported separately: it includes Blender
 subdivision). Then the median (min, max) of --runs warm runs. A breakdown of a warm run
 by phase and two alternative triangle reads (Blender's ``loop_triangles.foreach_get``)
 follow, each the median of --runs.
+
+``--scale 10m``: the same two scenes with Suzanne at level 5 (1,007,616 triangles) and as
+many copies as make about that many triangles (10 for 10m; rows of 5, 3 units apart): for
+each, the depsgraph evaluation, the cold and one warm extraction, their rates, and peak
+memory (the RSS high-water mark over the extraction, above what was resident before it,
+and the process's high-water mark; Linux only).
+
 Prints a table; fails on nothing.
 """
 
@@ -38,10 +46,23 @@ import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hybrid_raycast.core.mesh import TriangleMesh  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "scripts"))
+from _memory import PeakMemory, trim  # noqa: E402
+from bench_trace import parse_size  # noqa: E402
 from hybrid_raycast.operators import extract  # noqa: E402
 
 
-def build(kind: str, level: int):
+#: Suzanne's triangle count at Subdivision Surface level 5
+LEVEL5_TRIANGLES = 1_007_616
+
+
+def place(i):
+    """Where copy i stands: rows of 5, 3 units apart (Suzanne is about 2.7 wide)."""
+    return (3.0 * (i % 5), 3.0 * (i // 5), 0.0)
+
+
+def build(kind: str, level: int, copies: int = 4):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     bpy.ops.mesh.primitive_monkey_add()
@@ -49,9 +70,9 @@ def build(kind: str, level: int):
     mod = monkey.modifiers.new("Subdivision", "SUBSURF")
     mod.levels = mod.render_levels = level
     if kind == "linked":
-        for i in range(3):
+        for i in range(1, copies):
             dup = monkey.copy()  # linked duplicate: shares the mesh, copies the modifier
-            dup.location = (3.0 * (i + 1), 0.0, 0.0)
+            dup.location = place(i)
             scene.collection.objects.link(dup)
     else:
         coll = bpy.data.collections.new("Monkey")
@@ -59,11 +80,11 @@ def build(kind: str, level: int):
         scene.collection.objects.unlink(monkey)
         coll.objects.link(monkey)
         bpy.context.view_layer.layer_collection.children["Monkey"].exclude = True
-        for i in range(4):
+        for i in range(copies):
             e = bpy.data.objects.new(f"Inst{i}", None)
             e.instance_type = "COLLECTION"
             e.instance_collection = coll
-            e.location = (3.0 * i, 0.0, 0.0)
+            e.location = place(i)
             e.rotation_euler = (0.1 * i, 0.2 * i, 0.3 * i)
             e.scale = (1.0, 1.0 + 0.5 * i, -1.0 if i == 3 else 1.0)
             scene.collection.objects.link(e)
@@ -131,11 +152,75 @@ def breakdown(depsgraph, runs):
     return rows
 
 
+def _mib(b):
+    return "n/a" if b is None else f"{b / 2**20:,.0f}"
+
+
+def scale_check(size: int, runs: int):
+    """Both scenes at level 5 with enough copies for ``size`` triangles: evaluation, cold and
+    ``runs`` warm extractions (median), rates and peak memory."""
+    copies = max(1, round(size / LEVEL5_TRIANGLES))
+    print(f"extraction at scale: bpy {bpy.app.version_string}, numpy {np.__version__}, {os.cpu_count()} cores, "
+          f"load average {', '.join(f'{x:.2f}' for x in os.getloadavg())} at start, physical memory "
+          f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.1f} GiB")
+    print(f"Suzanne at Subdivision Surface level 5 ({LEVEL5_TRIANGLES:,} triangles), {copies} copies in rows of 5\n")
+    print(f"| scene | meshes read | triangles | evaluate s | cold extract s | warm extract s (median of {runs}) | warm Mtri/s "
+          "| mesh MiB | extract peak extra RSS MiB | process peak RSS MiB |")
+    print("|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
+    out = []
+    for kind in ("instanced", "linked"):
+        t0 = time.perf_counter()
+        dg = build(kind, 5, copies)
+        # the trailing Subdivision Surface is evaluated lazily, on first access to the mesh
+        for inst in dg.object_instances:
+            if inst.object.type == "MESH":
+                len(inst.object.data.loop_triangles)
+        evaluate = time.perf_counter() - t0
+        with PeakMemory(traced=False) as cold_mem:
+            cold, mesh = timed(lambda: extract.scene_mesh(dg))
+        # what the extraction returns (the corner array and validity are made later, by a build)
+        mesh_bytes = sum(a.nbytes for a in (mesh.vertices, mesh.triangles, mesh.object_index, mesh.polygon_index)
+                         if a is not None)
+        n, read = mesh.triangle_count, mesh.source_info.meshes_read
+        del mesh
+        trim()
+        warms = []
+        with PeakMemory(traced=False) as warm_mem:
+            for _ in range(runs):
+                mesh = None
+                t, mesh = timed(lambda: extract.scene_mesh(dg))
+                warms.append(t)
+        warm = statistics.median(warms)
+        peak = max(m.rss for m in (cold_mem, warm_mem)) if cold_mem.rss is not None else None
+        print(f"| {kind} | {read} | {n:,} | {evaluate:.2f} | {cold:.2f} | {warm:.2f} | {n / warm / 1e6:.1f} "
+              f"| {_mib(mesh_bytes)} | {_mib(peak)} | {_mib(warm_mem.hwm)} |")
+        sys.stdout.flush()
+        out.append(dict(kind=kind, triangles=n, meshes_read=read, evaluate_s=evaluate, cold_s=cold, warm_s=warm,
+                        mesh_bytes=mesh_bytes, peak_extra_rss=peak, process_peak_rss=warm_mem.hwm))
+        del mesh
+        trim()
+    print("\nevaluate = building the scene and Blender's evaluation of every Subdivision Surface (linked: one per "
+          "copy; instanced: one); cold = the first scene_mesh after it, warm = the later ones; peak extra RSS = "
+          "the larger of the cold and the warm extractions' RSS high-water marks above the RSS before them (VmHWM "
+          "after a reset), the TriangleMesh included (mesh MiB: its vertices, triangles, object and polygon "
+          "indices); process peak = VmHWM at the end of the warm runs (Blender's evaluated meshes included).  "
+          f"Load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}.")
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--level", type=int, default=4, help="Subdivision Surface level (4: ~1M triangles)")
+    ap.add_argument("--scale", help="instead: level 5 copies for about this many triangles (e.g. 10m), with peak memory")
     args = ap.parse_args(argv)
+    if args.scale:
+        try:
+            size = parse_size(args.scale)
+        except ValueError:
+            ap.error(f"--scale takes a triangle count such as 10m or 2500k, got {args.scale!r}")
+        scale_check(size, args.runs)
+        return
     cores = os.cpu_count()
     try:
         usable = len(os.sched_getaffinity(0))

@@ -78,7 +78,6 @@ quiet machine: these numbers move with the load.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import datetime
 import gc
 import importlib.util
@@ -89,12 +88,12 @@ import platform
 import statistics
 import sys
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _memory import PeakMemory, trim  # noqa: E402
 from _package import ROOT, core_package  # noqa: E402
 
 core_package()
@@ -134,60 +133,6 @@ def strided(m, k):
     if k >= m:
         return np.arange(m)
     return np.round(np.linspace(0, m - 1, k)).astype(np.int64)
-
-
-# -- memory -------------------------------------------------------------------------------
-def _proc_status(key):
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) * 1024
-    return None
-
-
-_libc = None
-
-
-def _trim():
-    """Collect garbage and hand freed heap back to the OS, so a later peak is not hidden
-    by the allocator reusing pages that are already resident."""
-    global _libc
-    gc.collect()
-    try:
-        _libc = _libc or ctypes.CDLL("libc.so.6")
-        _libc.malloc_trim(0)
-    except OSError:
-        pass
-
-
-class PeakMemory:
-    """Peak extra memory of a block: RSS high-water mark (Linux) and tracemalloc's peak
-    (``traced=False``: RSS only; tracemalloc slows code that allocates per element, such
-    as embreex's geometry copy, by 10x or more)."""
-
-    def __init__(self, traced=True):
-        self.trace_python = traced
-        self.traced = None
-
-    def __enter__(self):
-        _trim()
-        try:
-            with open("/proc/self/clear_refs", "w") as f:
-                f.write("5")  # reset VmHWM to the current RSS
-            self.rss0 = _proc_status("VmRSS")
-        except OSError:
-            self.rss0 = None
-        if self.trace_python:
-            tracemalloc.start()
-        return self
-
-    def __exit__(self, *exc):
-        if self.trace_python:
-            self.traced = tracemalloc.get_traced_memory()[1]
-            tracemalloc.stop()
-        self.hwm = _proc_status("VmHWM") if self.rss0 is not None else None
-        self.rss = None if self.hwm is None else max(0, self.hwm - self.rss0)
-        return False
 
 
 # -- the float64 reference ----------------------------------------------------------------
@@ -807,6 +752,8 @@ ENGINE_SCENES = {
     "suzanne": "Suzanne, Subdivision Surface level 5, evaluated by Blender",
 }
 OPEN3D_PYTHON = ROOT / ".venv-open3d" / "bin" / "python"
+#: the rows of the engine table (keys for --tracers)
+ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "bvh", "grid", "bvhtree", "open3d")
 
 
 def icospheres_mesh():
@@ -975,6 +922,8 @@ def engine_rows(scene, args, tmp):
         ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
         ("open3d", lambda: Open3DServer(scene, tmp)),
     ]
+    if args.tracers:
+        makers = [(key, make) for key, make in makers if key in args.tracers]
     caps = {"bvh": args.numpy_rays, "grid": args.numpy_rays, "bvhtree": args.loop_rays}
     tracers, rows = {}, {}
     for key, make in makers:
@@ -1161,7 +1110,7 @@ def scale_check(args):
         sys.stdout.flush()
         out.append(dict(kind=kind, build_s=b, trace_s=ts, hit_fraction=hit, peak_rss_bytes=pm.rss, process_peak_rss_bytes=pm.hwm))
         del hits
-        _trim()
+        trim()
     print(f"\nprocess peak RSS: VmHWM, reset before each structure (so getrusage's ru_maxrss, which the reset also "
           f"clears, would only see the last one); load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return dict(triangles=mesh.triangle_count, copies=copies, rays=len(o), structures=out)
@@ -1187,6 +1136,9 @@ def main(argv=None) -> int:
                     help="the engine table instead: raw embreex, the project's Embree, numpy BVH and grid, the BVHTree "
                          "loop and Open3D on --scenes with --rays (default 1M) random and camera rays")
     ap.add_argument("--scenes", default=",".join(ENGINE_SCENES), help="scenes of the engine table")
+    ap.add_argument("--tracers", default=None,
+                    help="only these rows of the engine table, e.g. raw,raw1,embree,embree1,open3d (default: all of "
+                         + ",".join(ENGINE_TRACERS) + ")")
     ap.add_argument("--loop-rays", type=int, default=200_000, help="rays the BVHTree loop traces in the engine table")
     ap.add_argument("--numpy-rays", type=int, default=262_144, help="rays the numpy BVH and grid trace in the engine table")
     ap.add_argument("--scale", help="instead: build and trace embree, bvh and grid once on Suzanne (level 5) instanced "
@@ -1201,6 +1153,11 @@ def main(argv=None) -> int:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(report, indent=1, default=_json_value))
         return 0
+    if args.tracers is not None:
+        args.tracers = [t for t in args.tracers.split(",") if t]
+        bad = [t for t in args.tracers if t not in ENGINE_TRACERS]
+        if bad or not args.engines:
+            ap.error(f"--tracers goes with --engines and takes some of {','.join(ENGINE_TRACERS)}; got {bad or args.tracers}")
     if args.engines:
         args.rays = args.rays or 1_000_000
         report = engines_main(args)

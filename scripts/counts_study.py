@@ -10,8 +10,10 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -22,7 +24,7 @@ core_package()
 from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hybrid_raycast.core.decide import Calibration, Measurement, SceneRecord, fit  # noqa: E402
+from hybrid_raycast.core.decide import DEFAULT_MODEL, Calibration, Measurement, SceneRecord, fit  # noqa: E402
 from hybrid_raycast.core.decide.cost import fit_counts  # noqa: E402
 from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import available_kinds, measure_break_even, time_trace  # noqa: E402
@@ -30,6 +32,16 @@ from hybrid_raycast.core.decide.work import grid_work  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+#: calibration scenes left out of every fit (``--drop``): to compare calibration sets
+DROP = None
+
+
+def load_rows(path):
+    """The study's rows, less the calibration scenes ``--drop`` leaves out."""
+    rows = json.loads(Path(path).read_text())
+    return [r for r in rows if not (DROP and r["group"] == "calibration" and re.search(DROP, r["name"]))]
 
 
 def records(rows, kinds=("grid", "bvh", "embree")):
@@ -42,36 +54,104 @@ def records(rows, kinds=("grid", "bvh", "embree")):
     return out
 
 
-GRID_TERMS = {"cells+refs": ("1", "cells", "refs"), "cells": ("1", "cells"), "refs": ("1", "refs")}
-HDS_TERMS = {"log2n": ("1", "log2n"), "log2n+hit": ("1", "log2n", "hit_log2n"),
-             "log2n+hit+length": ("1", "log2n", "hit_log2n", "length_log2n"),
-             "log2n+cells+refs": ("1", "log2n", "cells", "refs"), "cells+refs": ("1", "cells", "refs"),
-             "log2n+length": ("1", "log2n", "length_log2n"), "log2n+hit+len+refs": ("1", "log2n", "hit_log2n", "length_log2n", "refs")}
+#: (label, terms, form) of the grid's and the structure's count models the study compares
+GRID_MODELS = [("cells", ("1", "cells"), "linear"), ("cells+refs", ("1", "cells", "refs"), "linear"),
+               ("log: cells", ("1", "cells"), "log"), ("log: cells+refs", ("1", "cells", "refs"), "log")]
+HDS_MODELS = [("log2n", ("1", "log2n"), "linear"), ("log2n+cells+refs", ("1", "log2n", "cells", "refs"), "linear"),
+              ("log2n+hit+length", ("1", "log2n", "hit_log2n", "length_log2n"), "linear"),
+              ("log: log2n", ("1", "log2n"), "log"), ("log: log2n+cells", ("1", "log2n", "cells"), "log"),
+              ("log: log2n+refs", ("1", "log2n", "refs"), "log"), ("log: cells+refs", ("1", "cells", "refs"), "log"),
+              ("log: log2n+cells+refs", ("1", "log2n", "cells", "refs"), "log")]
+
+
+def repeat_records(rows, recs, r):
+    """The calibration records with repeat ``r``'s timings alone: one calibration of three in a row."""
+    out = []
+    for row, (g, rec) in zip(rows, recs):
+        if g != "calibration":
+            continue
+        kk = {k: Measurement(v[r][0], v[r][1] * rec.rays, rec.rays) for k, v in row["runs"].items() if k in rec.kinds}
+        out.append(SceneRecord(rec.name, rec.triangles, rec.rays, kk, rec.grid_samples, rec.work))
+    return out
 
 
 def analyse(path, kind="bvh"):
-    recs = records(json.loads(Path(path).read_text()))
+    """Held-out errors of every (build model, grid count model, structure count model), and how
+    far apart the per-ray times are that calibrations on each repeat's timings alone predict."""
+    rows = load_rows(path)
+    recs = records(rows)
     cal = [r for g, r in recs if g == "calibration"]
     ev_ = [r for g, r in recs if g != "calibration"]
+    reps = [repeat_records(rows, recs, r) for r in range(min(len(v) for row in rows for v in row["runs"].values()))]
     mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)])) if any(math.isfinite(x) for x in xs) else math.nan  # noqa: E731
-    print(f"{kind}: {len(cal)} calibration scenes, {len(ev_)} evaluated; median |error| in %: break-even (LOO on calibration / "
-          f"evaluated, fitted on all calibration), grid per-ray, {kind} per-ray")
-    rows = []
-    for gname, gt in [("sample x ratio", None)] + list(GRID_TERMS.items()):
-        for hname, ht in [("affine log2n", None)] + list(HDS_TERMS.items()):
-            kw = dict(kind=kind, grid="sample" if gt is None else "counts", hds="affine" if ht is None else "counts",
-                      terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")})
-            loo = rep.leave_one_out(cal, **kw)
-            held = rep.held_out_errors(cal, ev_, **kw)
-            rows.append((gname, hname, mabs([x["error"] for x in loo]), mabs([x["error"] for x in held]),
-                         mabs([x["grid_error"] for x in held]), mabs([x["per_ray_error"] for x in held]),
-                         sum(not math.isfinite(x["error"]) for x in held)))
-    print(f"{'grid':16s} {kind + ' per ray':20s} {'LOO':>7s} {'eval':>7s} {'t_G':>6s} {'t_H':>6s} undefined")
-    for r in rows:
-        print(f"{r[0]:16s} {r[1]:20s} {r[2]:7.1f} {r[3]:7.1f} {r[4]:6.1f} {r[5]:6.1f} {r[6]}")
+    print(f"{kind}: {len(cal)} calibration scenes, {len(ev_)} evaluated, {len(reps)} repeats; median |error| in %: break-even "
+          f"(LOO on calibration / evaluated, fitted on all calibration), grid per-ray, {kind} per-ray, {kind} build (evaluated); "
+          f"agree: largest per-ray (grid, {kind}) and build difference between calibrations on single repeats, on the evaluated meshes")
+    print(f"{'build':7s} {'grid':16s} {kind + ' per ray':22s} {'LOO':>7s} {'eval':>7s} {'t_G':>6s} {'t_H':>6s} {'T_B':>6s} undef "
+          f"{'agree t_G':>9s} {'t_H':>6s} {'T_B':>6s}")
+    for model in ("affine", "power"):
+        for gname, gt, gf in GRID_MODELS:
+            for hname, ht, hf in HDS_MODELS:
+                kw = dict(kind=kind, grid="counts", hds="counts", model=model,
+                          terms_of={"grid": gt, kind: ht}, forms_of={"grid": gf, kind: hf})
+                loo = rep.leave_one_out(cal, **kw)
+                held = rep.held_out_errors(cal, ev_, **kw)
+                fits = [(fit_counts(rr, ("grid", kind), terms_of=kw["terms_of"], forms_of=kw["forms_of"]),
+                         fit(rr, (kind,), model=model)[kind]) for rr in reps]
+                worst = [0.0, 0.0, 0.0]
+                for a in range(len(fits)):
+                    for b in range(a + 1, len(fits)):
+                        for rec in ev_:
+                            for j, k in enumerate(("grid", kind)):
+                                pa, pb = fits[a][0][k].predict(rec.triangles, rec.work), fits[b][0][k].predict(rec.triangles, rec.work)
+                                worst[j] = max(worst[j], 200 * abs(pa - pb) / (pa + pb))
+                            est = rep.model_functions(model)[1]
+                            pa, pb = est(fits[a][1], kind, rec.triangles).build, est(fits[b][1], kind, rec.triangles).build
+                            worst[2] = max(worst[2], 200 * abs(pa - pb) / (pa + pb))
+                print(f"{model:7s} {gname:16s} {hname:22s} {mabs([x['error'] for x in loo]):7.1f} {mabs([x['error'] for x in held]):7.1f} "
+                      f"{mabs([x['grid_error'] for x in held]):6.1f} {mabs([x['per_ray_error'] for x in held]):6.1f} "
+                      f"{mabs([x['build_error'] for x in held]):6.1f} {sum(not math.isfinite(x['error']) for x in held):5d} "
+                      f"{worst[0]:9.1f} {worst[1]:6.1f} {worst[2]:6.1f}", flush=True)
 
 
-def _calibration(recs, model="affine"):
+def agree(path, cal_paths, kind="bvh"):
+    """Two calibrations in a row (``ship_calibration.py --output``), refitted under each
+    (build model, grid count model, structure count model): how far apart the constants and
+    the per-ray times, builds and break-evens they predict on the study's evaluated meshes are."""
+    from hybrid_raycast.core.decide import load
+
+    ev_ = [r for g, r in records(json.loads(Path(path).read_text())) if g != "calibration"]
+    cals = [load(p, check_version=False) for p in cal_paths]
+    d = lambda a, b: 200 * abs(a - b) / (a + b) if a + b > 0 else 0.0  # noqa: E731
+    print(f"{len(cals)} calibrations ({', '.join(str(p) for p in cal_paths)}); differences in % of the mean, "
+          f"median (max) over {len(ev_)} evaluated meshes; break-even max/min median (max)")
+    print(f"{'build':7s} {'grid':16s} {kind + ' per ray':22s} {'t_G':>13s} {'t_H':>13s} {'T_B':>13s} {'R*':>13s}  constants")
+    for model in ("affine", "power"):
+        for gname, gt, gf in GRID_MODELS:
+            for hname, ht, hf in HDS_MODELS:
+                fits = [(fit_counts(c.scenes, ("grid", kind), terms_of={"grid": gt, kind: ht}, forms_of={"grid": gf, kind: hf}),
+                         fit(c.scenes, (kind,), model=model)[kind]) for c in cals]
+                est = rep.model_functions(model)[1]
+                cols = {"t_G": [], "t_H": [], "T_B": [], "R*": []}
+                for rec in ev_:
+                    n, w = rec.triangles, rec.work
+                    p = [(f[0]["grid"].predict(n, w), f[0][kind].predict(n, w), est(f[1], kind, n).build) for f in fits]
+                    cols["t_G"].append(d(p[0][0], p[1][0]))
+                    cols["t_H"].append(d(p[0][1], p[1][1]))
+                    cols["T_B"].append(d(p[0][2], p[1][2]))
+                    r = [rep.break_even(b, g, h) for g, h, b in p]
+                    if all(math.isfinite(x) for x in r):
+                        cols["R*"].append(max(r) / min(r))
+                consts = "; ".join(f"{k} " + "/".join(f"{a:.3g}|{b:.3g}" for a, b in zip(fits[0][0][k].coef, fits[1][0][k].coef))
+                                   for k in ("grid", kind))
+                b0, b1 = fits[0][1], fits[1][1]
+                consts += f"; build c_B {b0.c_B:.3g}|{b1.c_B:.3g} " + " ".join(f"{x} {b0.extra[x]:.3g}|{b1.extra[x]:.3g}" for x in b0.extra)
+                cell = lambda v, f="{:5.1f}": (f.format(np.median(v)) + " (" + f.format(max(v)) + ")") if v else "n/a"  # noqa: E731
+                print(f"{model:7s} {gname:16s} {hname:22s} {cell(cols['t_G']):>13s} {cell(cols['t_H']):>13s} {cell(cols['T_B']):>13s} "
+                      f"{cell(cols['R*'], '{:5.2f}'):>13s}  {consts}", flush=True)
+
+
+def _calibration(recs, model=DEFAULT_MODEL):
     """A Calibration fitted on ``recs`` as ``calibrate()`` fits it (affine build and per-ray
     constants, the count models of ``cost.COUNT_TERMS``)."""
     kinds = tuple(k for k in ("bvh", "embree") if all(k in r.kinds for r in recs))
@@ -84,7 +164,7 @@ def evaluate(path, k_samples=16384, plans=5):
     scenes, judged on the evaluated meshes (break-even errors, picks, hybrid / oracle);
     R_C's own spread over its interleaved repeats; constants fitted on each repeat alone
     (three calibrations from independent timings); five plan() runs per evaluated mesh."""
-    rows = json.loads(Path(path).read_text())
+    rows = load_rows(path)
     recs = records(rows)
     cal_recs = [r for g, r in recs if g == "calibration"]
     cal = _calibration(cal_recs)
@@ -101,7 +181,7 @@ def evaluate(path, k_samples=16384, plans=5):
         cost_e = float(np.median(row["sample"])) * k_samples + row["work_time"]
         s = rep.SceneResult(rec.name, n, rec.rays, rep.Cost(rec.kinds["grid"].build_time, rec.kinds["grid"].per_ray),
                             meas, est, t_g, cost_e, k_samples, g,
-                            reuse_estimate_time=row["work_time"])
+                            reuse_estimate_time=row["work_time"], floor=cal.break_even_floor(n, ("bvh",)))
         s.extra["R_C_repeats"] = row["R_C_repeats"]
         results.append(s)
     mabs = lambda xs: float(np.median([abs(x) for x in xs if math.isfinite(x)]))  # noqa: E731
@@ -120,6 +200,15 @@ def evaluate(path, k_samples=16384, plans=5):
             v = s.extra["R_C_repeats"].get(k, [])
             print(f"   {s.name:20s} R_C {rep.true_break_even(s, k):12,.0f} R_est {rep.estimated_break_even(s, k):12,.0f} "
                   f"error {x:+7.1f}%  R_C repeats {', '.join(f'{y:,.0f}' for y in v)}")
+    for k in kinds:
+        fl = [(s.name, s.floor, rep.true_break_even(s, k), cal.break_even_floor(s.triangles, (k,))) for s in results]
+        bad = [x for x in fl if x[3] > x[2]]
+        print(f"floor on R* vs {k} (calibration alone): median floor / R_C {np.median([x[3] / x[2] for x in fl]):.3f}, "
+              f"max {max(x[3] / x[2] for x in fl):.3f}; above R_C on {len(bad)} of {len(fl)} scenes"
+              + (": " + ", ".join(f"{n} {f:,.0f} > {r:,.0f}" for n, _, r, f in bad) if bad else ""))
+    sp0 = rep.speedup_summary([replace(s, floor=0.0) for s in results])
+    print(f"hybrid / oracle without the floor, median: (i) {sp0['hybrid_over_oracle']['median']:.3f}, "
+          f"(ii) {sp0['hybrid_reuse_over_oracle']['median']:.3f}")
     pk = rep.pick_accuracy(results)
     sp = rep.speedup_summary(results)
     calls = []
@@ -132,15 +221,7 @@ def evaluate(path, k_samples=16384, plans=5):
           f"({sp['hybrid_reuse_over_oracle']['p90']:.3f}); online batches of 32k {sp['online_over_oracle']['median']:.3f}; "
           f"calls of 1,000 rays with ski rental across calls {np.median(calls):.3f} (max {max(calls):.2f})")
     # constants from each repeat alone: what two calibrations in a row would give
-    fits = []
-    for r in range(3):
-        rr = []
-        for row, (g, rec) in zip(rows, recs):
-            if g != "calibration":
-                continue
-            kk = {k: Measurement(v[r][0], v[r][1] * rec.rays, rec.rays) for k, v in row["runs"].items() if k in rec.kinds}
-            rr.append(SceneRecord(rec.name, rec.triangles, rec.rays, kk, rec.grid_samples, rec.work))
-        fits.append(_calibration(rr))
+    fits = [_calibration(repeat_records(rows, recs, r)) for r in range(3)]
     print("calibrations fitted on each repeat's timings alone (1 vs 2, 1 vs 3, 2 vs 3): largest difference of the "
           "per-ray times and builds they predict on the evaluated meshes, and of their break-evens")
     for a, b in ((0, 1), (0, 2), (1, 2)):
@@ -208,15 +289,28 @@ def main(argv=None):
     ap.add_argument("--kind", default="bvh")
     ap.add_argument("--evaluate", default="", help="print the issue-14 goals from a saved JSON (no timing)")
     ap.add_argument("--plans", type=int, default=5)
+    ap.add_argument("--agree", nargs="+", default=[], metavar="CALIBRATION",
+                    help="with --analyse's JSON as --out: compare calibration files refitted under each model (no timing)")
     ap.add_argument("--subdivide", default="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3")
+    ap.add_argument("--only", default="", help="measure only the scenes whose name matches this regular expression")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the rows already in --out and add (or replace) the measured scenes: a study in short locked runs")
+    ap.add_argument("--drop", default="", help="leave the calibration scenes matching this regular expression out of the fits")
     args = ap.parse_args(argv)
+    global DROP
+    DROP = args.drop or None
+    if args.agree:
+        return agree(args.out, args.agree, args.kind)
     if args.analyse:
         return analyse(args.analyse, args.kind)
     if args.evaluate:
         return evaluate(args.evaluate, plans=args.plans)
     kinds, _ = available_kinds(("grid", "bvh", "embree"))
     todo = scene_list(args.scale, args.subdivide)
-    rows = []
+    if args.only:
+        todo = [t for t in todo if re.search(args.only, t[0])]
+    rows = json.loads(Path(args.out).read_text()) if args.append and Path(args.out).exists() else []
+    rows = [r for r in rows if r["name"] not in {t[0] for t in todo}]
     print(f"load {os.getloadavg()}", flush=True)
     for name, group, make in todo:
         mesh = make()

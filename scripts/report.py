@@ -6,7 +6,7 @@
 
 Protocol (Hapala, Karlik, Havran 2011, section 4, with this project's additions):
 
-1. calibrate the cost model on the package's procedural scenes (``core.calibration``),
+1. calibrate the cost model on the package's procedural scenes (``core.decide``),
    never on the evaluated meshes; ``--reuse-calibration`` loads ``--calibration`` when it
    holds a valid calibration made here instead of measuring again;
 2. on every real mesh of ``--scenes`` (../shared/scenes) and on larger versions made by
@@ -171,6 +171,8 @@ def measure_scene(name, group, mesh, cal, args, kinds):
     s = rep.SceneResult(
         name, n, len(o), rep.Cost(g_build, g_time / len(o)), measured, est, p.grid_per_ray, p.estimate_time,
         p.samples, group, grid_sample_per_ray=p.grid_sample_per_ray, reuse_estimate_time=pw.estimate_time,
+        # the hybrid the evaluation runs decides between the grid and the numpy BVH: its floor
+        floor=cal.break_even_floor(n, ("bvh",)),
         extra={"plan_grid_build": p.grid_build_time, "grid_resolution": [int(x) for x in getattr(grid, "res", [])],
                "plan_break_even": {k: c.break_even for k, c in p.candidates.items() if k != "grid"},
                "break_even_low": p.candidates["bvh"].break_even_low, "break_even_high": p.candidates["bvh"].break_even_high,
@@ -318,7 +320,7 @@ def decide_model(models, current: str, default: str) -> tuple[str, str]:
                      "**paper**.")
     where = f"the calibration used here is fitted with '{current}'" + ("" if current == default else
                                                                        f" (the package default is '{default}')")
-    lines.append(f"`core.calibration.DEFAULT_MODEL` is '{default}'; {where}; "
+    lines.append(f"`core.decide.DEFAULT_MODEL` is '{default}'; {where}; "
                  + ("the evaluation agrees with the default." if best == default else
                     f"the evaluation favours '{best}' over it."))
     return best, " ".join(lines)
@@ -427,8 +429,7 @@ def write_markdown(path: Path, R: dict):
     counts = cal.get("counts") or {}
     if counts:
         how = ("the count models: the grid's time per ray from the work counts of K = "
-               f"{fnum(meta['samples'])} sample rays (" + " + ".join(
-                   f"{c * 1e9:.2f} ns x {t}" for t, c in zip(counts["grid"]["terms"], counts["grid"]["coef"]))
+               f"{fnum(meta['samples'])} sample rays (" + calib.CountFit(**counts["grid"]).formula()
                + "), each structure's from the same counts (`core.decide.cost.COUNT_TERMS`), its build from the "
                f"'{cal['model']}' model")
     else:
@@ -842,7 +843,7 @@ def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> di
         if g is not None:
             consts[f"{k} c_B"] = rel(f.c_B, g.c_B)
             consts[f"{k} c_R"] = rel(f.c_R, g.c_R)
-            for name in ("a_B", "a_R"):
+            for name in ("a_B", "a_R", "p_B", "p_R"):
                 if name in f.extra and name in g.extra:
                     consts[f"{k} {name}"] = rel(f.extra[name], g.extra[name])
     for k, f in cal.counts.items():
@@ -893,16 +894,20 @@ def plan_repeatability(scenes, kind: str = "bvh") -> dict:
             "scenes": len(r), "runs": max((len(s.extra.get("plan_repeats", {}).get(kind, [])) for s in scenes), default=0)}
 
 
-#: count models compared by held-out error: (grid estimate, structure's per ray, terms)
+#: count models compared by held-out error: (grid estimate, structure's per ray, grid terms,
+#: structure terms, grid form, structure form); forms as ``cost.CountFit.form``
 COUNT_VARIANTS = [
-    ("sample x ratio", "affine log2n", None, None),
-    ("counts: cells", "affine log2n", ("1", "cells"), None),
-    ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None),
-    ("sample x ratio", "counts: log2n", None, ("1", "log2n")),
-    ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n")),
-    ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n")),
-    ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs")),
-    ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs")),
+    ("sample x ratio", "affine log2n", None, None, "linear", "linear"),
+    ("counts: cells", "affine log2n", ("1", "cells"), None, "linear", "linear"),
+    ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None, "linear", "linear"),
+    ("sample x ratio", "counts: log2n", None, ("1", "log2n"), "linear", "linear"),
+    ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n"), "linear", "linear"),
+    ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n"), "linear", "linear"),
+    ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
+    ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
+    ("log counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "log", "linear"),
+    ("log counts: cells", "log counts: log2n, refs", ("1", "cells"), ("1", "log2n", "refs"), "log", "log"),
+    ("log counts: cells", "log counts: log2n", ("1", "cells"), ("1", "log2n"), "log", "log"),
 ]
 
 
@@ -910,9 +915,10 @@ def count_comparison(cal: Calibration, kind: str = "bvh", samples: int = DEFAULT
     """Leave-one-out over the calibration scenes of each count-model variant: the held-out
     break-even error and the per-ray errors of the grid and of ``kind``."""
     rows = []
-    for gname, hname, gt, ht in COUNT_VARIANTS:
+    for gname, hname, gt, ht, gf, hf in COUNT_VARIANTS:
         kw = dict(kind=kind, grid="sample" if gt is None else "counts", hds="affine" if ht is None else "counts",
-                  terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")}, samples=samples)
+                  terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")},
+                  forms_of={"grid": gf, kind: hf}, samples=samples, model=cal.model)
         loo = rep.leave_one_out([r for r in cal.scenes if r.work], **kw)
         rows.append({"grid": gname, "per_ray": hname, "loo": median_abs([x["error"] for x in loo]),
                      "grid_error": median_abs([x["grid_error"] for x in loo]),
@@ -1077,7 +1083,7 @@ def main(argv=None):
     ap.add_argument("--reuse-calibration", action="store_true", help="load --calibration when valid instead of measuring")
     ap.add_argument("--cal-scale", default="default", help="calibration set: tiny, quick or default")
     ap.add_argument("--cal-rays", type=int, default=None,
-                    help="rays per calibration scene (default: core.calibration's for the scale, as the add-on calibrates)")
+                    help="rays per calibration scene (default: core.decide's for the scale, as the add-on calibrates)")
     ap.add_argument("--cal-ladder", default=",".join(map(str, SAMPLE_LADDER)),
                     help=f"grid sample sizes K timed by the calibration (default {','.join(map(str, SAMPLE_LADDER))})")
     ap.add_argument("--sweep-scenes", default=",".join(SWEEP_SCENES), help="scenes of the K / density sweep ('' for none)")

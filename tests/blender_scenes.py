@@ -8,6 +8,7 @@ the calibration at a temporary path that does not exist yet.
 
 from __future__ import annotations
 
+import io
 import math
 
 import numpy as np
@@ -36,6 +37,14 @@ def fresh(addon, tmp_path, monkeypatch):
     scene.hybrid_raycast.custom_rays = 1.0e6
     scene.hybrid_raycast.sample_rays = 2048
     yield scene
+
+
+def run_cli(addon, *argv):
+    """The add-on's -c hybrid_raycast handler as Blender calls it, its stdout and stderr captured:
+    (exit code, stdout text, stderr text)."""
+    out, err = io.StringIO(), io.StringIO()
+    code = addon.operators.cli.main(list(argv), stdout=out, stderr=err)
+    return code, out.getvalue(), err.getvalue()
 
 
 def add_mesh(name, vertices, faces, location=(0.0, 0.0, 0.0), scene=None):

@@ -298,7 +298,7 @@ def test_calibration_sets_span_the_sizes_and_have_unique_names():
         assert len(names) == len(set(names)), f"duplicate names in {scale}: {names}"
     sizes = [f.args[0] for _, f in S.calibration_set("default")]
     assert min(sizes) <= 600 and max(sizes) >= 900_000, f"default set spans {min(sizes)}..{max(sizes)}"
-    assert {n.split("-")[0] for n, _ in S.calibration_set("default")} == set(S.SCENES)
+    assert {n.split("-")[0] for n, _ in S.calibration_set("rich")} == set(S.SCENES)
     with pytest.raises(ValueError, match="unknown calibration scale 'huge'"):
         S.calibration_set("huge")
     with pytest.raises(ValueError, match="unknown procedural scene 'cube'"):

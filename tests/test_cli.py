@@ -14,15 +14,9 @@ import pytest
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
 
-from blender_scenes import add_cube, addon, fresh, make_nan, props, simple_scene  # noqa: E402,F401
+from blender_scenes import add_cube, addon, fresh, make_nan, props, run_cli, simple_scene  # noqa: E402,F401
 
 pytestmark = pytest.mark.blender
-
-
-def run(addon, *argv):
-    out, err = io.StringIO(), io.StringIO()
-    code = addon.operators.cli.main(list(argv), stdout=out, stderr=err)
-    return code, out.getvalue(), err.getvalue()
 
 
 def one_line(err):
@@ -43,7 +37,7 @@ def test_register_adds_the_cli_command_and_unregister_removes_it(addon):
 
 def test_analyze_writes_json_with_every_figure_the_panel_shows(fresh, addon, tmp_path):
     simple_scene()
-    code, out, err = run(addon, "analyze", "--rays", "2e6", "--json", str(tmp_path / "a.json"), "--output", str(tmp_path / "o"))
+    code, out, err = run_cli(addon, "analyze", "--rays", "2e6", "--json", str(tmp_path / "a.json"), "--output", str(tmp_path / "o"))
     assert code == 0, err
     doc = json.loads((tmp_path / "a.json").read_text())
     p = props()
@@ -68,7 +62,7 @@ def test_analyze_writes_json_with_every_figure_the_panel_shows(fresh, addon, tmp
 
 def test_trace_writes_the_passes_and_the_trace_figures(fresh, addon, tmp_path):
     simple_scene(resolution=(48, 32))
-    code, out, err = run(addon, "trace", "--output", str(tmp_path))
+    code, out, err = run_cli(addon, "trace", "--output", str(tmp_path))
     assert code == 0, err
     for stem in ("depth", "normal", "object_id", "plot"):
         assert (tmp_path / f"hybrid_raycast_{stem}.png").is_file(), stem
@@ -83,16 +77,16 @@ def test_trace_writes_the_passes_and_the_trace_figures(fresh, addon, tmp_path):
 
 def test_trace_ao_bakes_the_named_object(fresh, addon):
     simple_scene()
-    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "4")
+    code, out, err = run_cli(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "4")
     assert code == 0, err
     assert "HRC AO" in bpy.data.objects["Cube"].data.color_attributes
 
 
 def test_report_reuses_a_fresh_analysis_and_reanalyzes_a_stale_one(fresh, addon, tmp_path):
     simple_scene()
-    run(addon, "analyze")
+    run_cli(addon, "analyze")
     first = props().analyzed_at, props().last_analysis_json
-    code, out, err = run(addon, "report", "--json", "-")
+    code, out, err = run_cli(addon, "report", "--json", "-")
     assert code == 0, err
     doc = json.loads(out)  # nothing but the JSON on stdout; the messages went to stderr
     assert "hybrid_raycast report: decision" in err
@@ -101,7 +95,7 @@ def test_report_reuses_a_fresh_analysis_and_reanalyzes_a_stale_one(fresh, addon,
     bpy.data.objects["Cube"].location.z += 1
     bpy.context.evaluated_depsgraph_get()
     assert props().stale
-    code, out, err = run(addon, "report", "--json", str(tmp_path / "r.json"))
+    code, out, err = run_cli(addon, "report", "--json", str(tmp_path / "r.json"))
     assert code == 0, err
     assert props().last_analysis_json != first[1], "report kept a stale analysis"
     assert json.loads((tmp_path / "r.json").read_text())["stale"] is False
@@ -109,14 +103,14 @@ def test_report_reuses_a_fresh_analysis_and_reanalyzes_a_stale_one(fresh, addon,
 
 def test_report_without_any_analysis_analyzes(fresh, addon):
     simple_scene()
-    code, out, err = run(addon, "report")
+    code, out, err = run_cli(addon, "report")
     assert code == 0, err
     assert props().has_results
 
 
 def test_calibrate_writes_the_given_file(fresh, addon, tmp_path):
     target = tmp_path / "cal" / "c.json"
-    code, out, err = run(addon, "calibrate", "--scale", "tiny", "--calibration", str(target), "--json", str(tmp_path / "c.json"))
+    code, out, err = run_cli(addon, "calibrate", "--scale", "tiny", "--calibration", str(target), "--json", str(tmp_path / "c.json"))
     assert code == 0, err
     assert target.is_file()
     doc = json.loads((tmp_path / "c.json").read_text())
@@ -129,7 +123,7 @@ def test_blend_argument_opens_a_saved_file(fresh, addon, tmp_path):
     path = tmp_path / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    code, out, err = run(addon, "analyze", "--blend", str(path), "--rays", "1e5", "--json", str(tmp_path / "a.json"))
+    code, out, err = run_cli(addon, "analyze", "--blend", str(path), "--rays", "1e5", "--json", str(tmp_path / "a.json"))
     assert code == 0, err
     doc = json.loads((tmp_path / "a.json").read_text())
     assert doc["scene"] == "Saved" and doc["summary"]["triangles"] == 14
@@ -156,20 +150,20 @@ def test_blend_argument_opens_a_saved_file(fresh, addon, tmp_path):
 ])
 def test_bad_arguments_exit_2_with_one_line(fresh, addon, argv, code, words):
     add_cube("Cube")
-    got, out, err = run(addon, *argv)
+    got, out, err = run_cli(addon, *argv)
     line = one_line(err)
     assert got == code, f"exit {got}, expected {code}: {line}"
     assert words in line and line.startswith("hybrid_raycast"), line
 
 
 def test_help_exits_0(addon, capsys):
-    got, out, err = run(addon, "--help")
+    got, out, err = run_cli(addon, "--help")
     assert got == 0
 
 
 def test_no_geometry_exits_3(fresh, addon):
     bpy.context.scene.collection.objects.link(bpy.data.objects.new("Empty", None))
-    got, out, err = run(addon, "analyze")
+    got, out, err = run_cli(addon, "analyze")
     assert got == 3 and "no geometry" in one_line(err)
 
 
@@ -181,7 +175,7 @@ def test_unwritable_paths_exit_4(fresh, addon, tmp_path):
                  ["analyze", "--output", str(blocker / "out")],
                  ["analyze", "--json", str(tmp_path)],
                  ["calibrate", "--scale", "tiny", "--calibration", str(blocker / "c.json")]):
-        got, out, err = run(addon, *argv)
+        got, out, err = run_cli(addon, *argv)
         assert got == 4, f"{argv}: exit {got}: {err}"
         assert "unwritable path" in one_line(err)
     assert not props().has_results, "an unwritable --json must fail before analysing"
@@ -189,15 +183,15 @@ def test_unwritable_paths_exit_4(fresh, addon, tmp_path):
 
 def test_nan_geometry_exits_5(fresh, addon):
     make_nan(add_cube("Broken"))
-    got, out, err = run(addon, "analyze")
+    got, out, err = run_cli(addon, "analyze")
     assert got == 5 and "'Broken'" in one_line(err)
 
 
 def test_trace_without_a_camera_exits_6(fresh, addon):
     add_cube("Cube")
-    got, out, err = run(addon, "trace")
+    got, out, err = run_cli(addon, "trace")
     assert got == 6 and "no camera" in one_line(err)
-    got, out, err = run(addon, "trace", "--workload", "ao", "--object", "Nope")
+    got, out, err = run_cli(addon, "trace", "--workload", "ao", "--object", "Nope")
     assert got == 6 and "no mesh to bake" in one_line(err)
 
 
@@ -263,7 +257,7 @@ def test_trace_json_decodes_the_depth_and_object_id_pngs_like_scene_ray_cast(fre
     scene = simple_scene(resolution=(40, 30))
     add_cube("Box", 1.0, (2.2, 0.0, -0.2))
     bpy.context.view_layer.update()
-    code, out, err = run(addon, "trace", "--output", str(tmp_path), "--json", str(tmp_path / "t.json"))
+    code, out, err = run_cli(addon, "trace", "--output", str(tmp_path), "--json", str(tmp_path / "t.json"))
     assert code == 0, err
     passes = json.loads((tmp_path / "t.json").read_text())["trace"]["passes"]
     near, far = passes["depth"]["near"], passes["depth"]["far"]
@@ -312,14 +306,14 @@ def test_trace_ao_save_keeps_the_bake_in_the_loaded_blend_or_a_new_path(fresh, a
     simple_scene()
     blend = tmp_path / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8")
+    code, out, err = run_cli(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8")
     assert code == 0, err
     assert "pass --save" in out, "an unsaved bake should say how to keep it"
-    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8", "--save")
+    code, out, err = run_cli(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8", "--save")
     assert code == 0, err
     baked = _ao(bpy.data.objects["Cube"])
     other = tmp_path / "sub" / "copy.blend"
-    code, out, err = run(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8",
+    code, out, err = run_cli(addon, "trace", "--workload", "ao", "--object", "Cube", "--ao-samples", "8",
                          "--save", str(other), "--json", str(tmp_path / "t.json"))
     assert code == 0, err
     assert json.loads((tmp_path / "t.json").read_text())["files"]["blend"] == str(other)
@@ -340,13 +334,13 @@ def test_save_to_an_unwritable_place_exits_4_before_any_work(fresh, addon, tmp_p
     blocker = tmp_path / "file"
     blocker.write_text("x")
     for target in (blocker / "x.blend", tmp_path):
-        got, out, err = run(addon, "analyze", "--save", str(target) if target != tmp_path else str(tmp_path / "d.blend"))
+        got, out, err = run_cli(addon, "analyze", "--save", str(target) if target != tmp_path else str(tmp_path / "d.blend"))
         if target == tmp_path:
             assert got == 0, err  # a fresh path in a writable folder is fine
             continue
         assert got == 4 and "unwritable path" in one_line(err), (got, err)
     (tmp_path / "dir.blend").mkdir()
-    got, out, err = run(addon, "analyze", "--save", str(tmp_path / "dir.blend"))
+    got, out, err = run_cli(addon, "analyze", "--save", str(tmp_path / "dir.blend"))
     assert got == 4 and "is a folder" in one_line(err)
 
 
@@ -375,7 +369,7 @@ def test_a_missing_or_non_blend_file_before_c_exits_2_with_one_line(fresh, addon
         got = addon.operators.cli.main(["analyze"], stdout=out, stderr=err, blender_argv=argv)
         line = one_line(err.getvalue())
         assert got == 2 and words in line and str(path) in line, line
-    got, out, err = run(addon, "analyze", "--blend", str(text))
+    got, out, err = run_cli(addon, "analyze", "--blend", str(text))
     assert got == 2 and "cannot open" in one_line(err), err
     assert not props().has_results, "nothing may be analysed after a bad file"
     bpy.ops.wm.open_mainfile(filepath=str(blend))

@@ -8,6 +8,7 @@ copy against hand-worked figures rather than keeping copies equal.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ import pytest
 from hybrid_raycast.core.decide import cost, rule
 from hybrid_raycast.core.decide import evaluate as ev
 from hybrid_raycast.core.plan import plan_from_timings
-from hybrid_raycast.core.decide import Calibration, KindFit
+from hybrid_raycast.core.decide import Calibration, KindFit, Measurement, SceneRecord
 
 
 def test_break_even_is_build_over_the_per_ray_gain_and_never_when_the_grid_is_not_slower():
@@ -51,6 +52,15 @@ def test_choose_with_answered_samples_weighs_the_rays_left_and_embree_retraces_a
     assert rule.choose([5_000], 4e-6, cands, answered=1000)[0] == "grid"
     assert rule.choose([5_000], 4e-6, cands, answered=0)[0] == "embree"  # 0.02 > 0.0175
     assert rule.choose([800], 4e-6, {"bvh": (0.0, 1e-6)}, answered=1000)[0] == "grid"  # nothing left to trace
+
+
+def test_choose_keeps_the_grid_at_or_below_the_floor_whatever_the_costs():
+    # bvh is cheaper from 33,334 rays on (R* = 33,333.3); a floor of 50,000 overrides that
+    # up to and including 50,000 rays, and changes nothing above it
+    cands = {"bvh": (0.1, 1e-6)}
+    got = rule.choose([1_000, 33_334, 50_000, 50_001], 4e-6, cands, floor=50_000)
+    assert list(got) == ["grid", "grid", "grid", "bvh"]
+    assert list(rule.choose([33_334, 50_000], 4e-6, cands)) == ["bvh", "bvh"]
 
 
 def test_plan_and_evaluation_decide_through_the_one_rule():
@@ -141,6 +151,101 @@ def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     assert (t["log2n"], t["hit_log2n"], t["length_log2n"]) == (10.0, 2.5, 5.0)
 
 
+def test_log_count_fit_recovers_an_exact_power_law_and_predicts_it():
+    """form 'log': t = exp(c0) (1 + cells)^c1 (1 + refs)^c2 is fitted exactly on data that
+    follow it, and predicts it on counts it never saw."""
+    law = lambda c, f: 3e-7 * (1 + c) ** 0.6 * (1 + f) ** 0.25  # noqa: E731
+    rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, law(c, f))
+            for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
+    f = cost.CountFit.fit(rows, ("1", "cells", "refs"), form="log")
+    assert f.form == "log"
+    assert f.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
+    assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
+    assert f.predict(1 << 20, {"cells": 99, "refs": 15}) == pytest.approx(3e-7 * 100 ** 0.6 * 16 ** 0.25, rel=1e-9)
+    assert f.formula() == "300.00 ns x (1 + cells)^0.600 x (1 + refs)^0.250"
+    with pytest.raises(ValueError, match="form"):
+        cost.CountFit.fit(rows, ("1", "cells"), form="cubic")
+    with pytest.raises(ValueError, match="'1'"):
+        cost.CountFit.fit(rows, ("cells",), form="log")
+
+
+def test_log_count_fit_keeps_every_term_where_the_linear_fit_drops_one():
+    """The linear fit's sign constraint drops a term whose slope would be negative (and may keep
+    it on the next calibration's timings); the log fit keeps the term set fixed."""
+    rows = [(1 << 10, {"cells": c, "refs": 0.0, "hit": 0.0, "length": 0.0}, t)
+            for c, t in ((1.0, 3.0), (2.0, 2.0), (3.0, 1.0))]
+    lin = cost.CountFit.fit(rows, ("1", "cells"))
+    log = cost.CountFit.fit(rows, ("1", "cells"), form="log")
+    assert lin.coef[1] == 0.0 and log.coef[1] < 0
+
+
+def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
+    recs = [SceneRecord(f"s{n}", 1 << n, 1000, {"bvh": Measurement(2e-8 * cost.nlog2n(1 << n) ** 1.1,
+                                                                   1000 * 1e-7 * n ** 0.8, 1000)})
+            for n in (8, 11, 14, 17, 20)]
+    f = cost.fit(recs, ("bvh",), model="power")["bvh"]
+    assert (f.c_B, f.extra["p_B"], f.c_R, f.extra["p_R"]) == pytest.approx((2e-8, 1.1, 1e-7, 0.8), rel=1e-9)
+    e = cost.MODELS["power"][1](f, "bvh", 1 << 16)  # N log2 N = 1,048,576, log2 N = 16
+    assert (e.build, e.per_ray) == pytest.approx((2e-8 * 1048576 ** 1.1, 1e-7 * 16 ** 0.8), rel=1e-9)
+    assert e.build_low <= e.build <= e.build_high
+
+
+def test_power_model_on_close_sizes_is_the_affine_fit():
+    """Sizes within a decade of N log2 N cannot measure an exponent: the power model's build
+    is the affine least squares there (exact on affine data), p_B = 1."""
+    recs = [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(1e-3 + 2e-8 * cost.nlog2n(n), 1000 * 1e-7 * math.log2(n) ** 0.8, 1000)})
+            for n in (500, 600, 700, 850, 1000)]
+    f = cost.fit(recs, ("bvh",), model="power")["bvh"]
+    assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8, 1.0), rel=1e-6)
+    e = cost.MODELS["power"][1](f, "bvh", 20000)
+    assert e.build == pytest.approx(1e-3 + 2e-8 * cost.nlog2n(20000), rel=1e-6)
+
+
+def _lawful_records(ns=(1000, 4000, 16000, 64000, 256000)):
+    """Calibration records that follow exact power laws: grid 1e-7 N^0.25 s a ray, the BVH
+    gaining half of that, its build 5e-8 (N log2 N)^1.05."""
+    return [SceneRecord(f"s{n}", n, 1000, {"grid": Measurement(1e-3, 1000 * 1e-7 * n ** 0.25, 1000),
+                                             "bvh": Measurement(5e-8 * cost.nlog2n(n) ** 1.05, 1000 * 0.5e-7 * n ** 0.25, 1000)})
+            for n in ns]
+
+
+def test_prior_floor_is_the_margin_times_lowest_build_over_largest_gain_on_exact_laws():
+    n = 30000
+    p = cost.prior(_lawful_records(), n, ("bvh",))
+    gain = 0.5e-7 * n ** 0.25
+    assert p.grid_per_ray == pytest.approx(1e-7 * n ** 0.25, rel=1e-9)
+    assert p.per_ray["bvh"] == pytest.approx(p.grid_per_ray - gain, rel=1e-9)
+    assert p.floor == pytest.approx(cost.FLOOR_MARGIN * 5e-8 * cost.nlog2n(n) ** 1.05 / gain, rel=1e-9)
+    # the floor lies below the true break-even of a scene on the laws, by the margin
+    assert p.floor == pytest.approx(cost.FLOOR_MARGIN * cost.break_even(5e-8 * cost.nlog2n(n) ** 1.05, 2 * gain, gain), rel=1e-9)
+    assert cost.prior(_lawful_records()[:2], n, ("bvh",)).floor == 0.0  # two scenes bound nothing
+    assert cost.prior(_lawful_records(), n, ("bvh", "embree")).floor == 0.0  # embree was not measured
+
+
+def test_a_plan_below_the_floor_keeps_the_grid_without_a_sample_and_samples_above_it():
+    from hybrid_raycast.core import plan, scenes as S
+
+    recs = _lawful_records()
+    cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
+    mesh = S.torus(3000)
+    floor = cal.break_even_floor(mesh.triangle_count, ("bvh",))
+    assert floor > 100
+    below = plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000)
+    assert (below.samples, below.decision, below.break_even_floor) == (0, "GRID", floor)
+    assert below.break_even >= floor / cost.FLOOR_MARGIN * (1 - 1e-9)
+    above = plan(mesh, floor * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
+    assert above.samples == 2000
+    assert plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000, prior=False).samples == 2000
+
+
+def test_the_evaluated_hybrid_pays_no_estimate_below_the_floor():
+    s = ev.SceneResult("x", 1000, 10, ev.Cost(0.01, 1e-6), {"bvh": ev.Cost(0.02, 1e-7)}, {"bvh": ev.Cost(0.02, 1e-7)},
+                       1e-6, 0.005, 100, floor=500.0)
+    t = ev.hybrid_totals(s, [400.0, 600.0])
+    assert t["hybrid"].tolist() == pytest.approx([0.01 + 400e-6, 0.01 + 0.005 + 600e-6])
+    assert list(t["choice"]) == ["grid", "grid"]
+
+
 def test_nonneg_fit_drops_a_term_that_would_be_negative():
     x = np.array([[1, 1.0], [1, 2.0], [1, 3.0]])
     y = np.array([3.0, 2.0, 1.0])  # falling with x: the slope would be negative
@@ -169,8 +274,10 @@ def test_count_model_survives_save_and_load(tmp_path):
     from hybrid_raycast.core.decide import load
 
     cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
-                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5),
+                              "bvh": cost.CountFit(("1", "log2n"), (-15.0, 0.5), 0.9, 1.1, 5, form="log")})
     back = load(cal.save(tmp_path / "c.json"))
+    assert back.counts["bvh"].predict(1 << 12, {}) == pytest.approx(math.exp(-15.0) * 13 ** 0.5, rel=1e-12)
     assert back.counts == cal.counts
 
 
@@ -186,10 +293,19 @@ def test_a_plan_says_which_candidates_are_missing_and_why(monkeypatch):
     assert p.to_dict()["unavailable"] == p.unavailable
 
 
-def test_the_compatibility_modules_name_the_one_home():
-    """core.calibration and core.report only re-export core.decide (other code imports them)."""
-    from hybrid_raycast.core import calibration, decide, report
+def test_the_break_even_and_the_rule_each_have_one_home():
+    """One home per concept: the break-even formula is defined only in core/decide/cost.py,
+    the decision rule only in core/decide/rule.py, and the old alias modules are gone."""
+    import ast
+    import importlib.util
 
-    assert calibration.calibrate is decide.calibrate and calibration.Calibration is decide.Calibration
-    assert calibration.break_even is cost.break_even and report.break_even is cost.break_even
-    assert report.hybrid_choice is ev.hybrid_choice
+    root = Path(cost.__file__).resolve().parents[2]
+    homes = {}
+    files = sorted(root.glob("*.py")) + [p for d in ("core", "operators", "ui", "scripts") for p in sorted((root / d).rglob("*.py"))]
+    for p in files:
+        for node in ast.walk(ast.parse(p.read_text(), str(p))):
+            if isinstance(node, ast.FunctionDef) and node.name in ("break_even", "choose"):
+                homes.setdefault(node.name, []).append(str(p.relative_to(root)))
+    assert homes == {"break_even": ["core/decide/cost.py"], "choose": ["core/decide/rule.py"]}, homes
+    for alias in ("calibration", "report"):
+        assert importlib.util.find_spec(f"{cost.__package__.rsplit('.', 1)[0]}.{alias}") is None, alias

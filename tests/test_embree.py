@@ -189,3 +189,46 @@ def test_concurrent_traces_on_one_structure_match_a_single_thread_trace(threads)
                 assert bad.size == 0, f"thread {i} run {run}: {f} differs from the lone trace at rays {bad[:5].tolist()}"
             bad = np.flatnonzero(occ != alone_occ[i])
             assert bad.size == 0, f"thread {i} run {run}: occluded differs at rays {bad[:5].tolist()}"
+
+
+@needs_embree
+@pytest.mark.parametrize("threads,chunk_size", [(1, 7000), (2, 7000), (2, 1 << 16)])
+def test_chunk_by_chunk_validation_gives_the_whole_batch_paths_hits_and_errors(threads, chunk_size):
+    """EmbreeAccel validates each chunk inside its pool task and writes into one output;
+    the hits, the occluded flags and the error messages must be those of the base class's
+    whole-batch path (prepare_rays on every ray, then chunks, then concatenation)."""
+    from hybrid_raycast.core import scenes
+    from hybrid_raycast.core.accel import Accel
+
+    mesh = scenes.make_scene("city", 20000, seed=3)
+    acc = core.build(mesh, "embree", threads=threads, chunk_size=chunk_size)
+    o, d = core.uniform_rays(mesh, 30_000, seed=5)
+    n = len(o)
+    tmin = np.where(np.arange(n) % 3 == 0, np.float32(0.05), np.float32(0))
+    tmax = np.where(np.arange(n) % 5 == 0, np.float32(0.5), np.float32(np.inf))
+    cases = {"defaults": (o, d), "tmin": (o, d, tmin), "tmin and tmax": (o, d, tmin, tmax),
+             "float64, scalars": (o.astype(np.float64), d.astype(np.float64), 0.01, 3.0),
+             "one (3,) ray": (o[0], d[0]), "no rays": (o[:0], d[:0])}
+    for name, args in cases.items():
+        got, want = acc.trace(*args), Accel.trace(acc, *args)
+        for f in ("t", "triangle", "u", "v"):
+            a, b = getattr(got, f), getattr(want, f)
+            assert a.dtype == b.dtype and a.shape == b.shape, f"{name}: {f} is {a.dtype}{a.shape}, want {b.dtype}{b.shape}"
+            bad = np.flatnonzero(a.view(np.uint32) != b.view(np.uint32))
+            assert bad.size == 0, f"{name}: {f} differs from the whole-batch path at rays {bad[:5].tolist()}"
+        occ, occ_want = acc.occluded(*args), Accel.occluded(acc, *args)
+        bad = np.flatnonzero(occ != occ_want)
+        assert bad.size == 0, f"{name}: occluded differs from the whole-batch path at rays {bad[:5].tolist()}"
+    bad_o = o.copy()
+    bad_o[[7, n - 3]] = np.nan  # in the first and the last chunk
+    bad_d = d.copy()
+    bad_d[n // 2] = 0.0
+    for name, args in {"NaN origins": (bad_o, d), "zero direction": (o, bad_d),
+                       "tmin > tmax": (o, d, np.where(np.arange(n) == n - 1, 5.0, 0.0), 1.0),
+                       "shapes differ": (o, d[:10]), "tmin of the wrong length": (o, d, np.zeros(3))}.items():
+        for fn in ("trace", "occluded"):
+            with pytest.raises(ValueError) as whole:
+                getattr(Accel, fn)(acc, *args)
+            with pytest.raises(ValueError) as chunked:
+                getattr(acc, fn)(*args)
+            assert str(chunked.value) == str(whole.value), f"{name}, {fn}: {chunked.value!r} != {whole.value!r}"

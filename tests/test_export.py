@@ -1,6 +1,5 @@
 """`-c hybrid_raycast export`: one scene file per frame, checked against Blender's own data."""
 
-import io
 import json
 
 import numpy as np
@@ -8,17 +7,11 @@ import pytest
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
 
-from blender_scenes import add_cube, addon, fresh, make_nan  # noqa: E402,F401
+from blender_scenes import add_cube, addon, fresh, make_nan, run_cli  # noqa: E402,F401
 
 from hybrid_raycast import core  # noqa: E402
 
 pytestmark = pytest.mark.blender
-
-
-def run(addon, *argv):
-    out, err = io.StringIO(), io.StringIO()
-    code = addon.operators.cli.main(list(argv), stdout=out, stderr=err)
-    return code, out.getvalue(), err.getvalue()
 
 
 def animated_cube():
@@ -44,7 +37,7 @@ def blender_world_vertices(ob, frame):
 
 def test_export_writes_one_file_per_frame_matching_blender(fresh, addon, tmp_path):
     ob = animated_cube()
-    code, out, err = run(addon, "export", "--frames", "1-3,5", "--output", str(tmp_path), "--json", str(tmp_path / "e.json"))
+    code, out, err = run_cli(addon, "export", "--frames", "1-3,5", "--output", str(tmp_path), "--json", str(tmp_path / "e.json"))
     assert code == 0, err
     names = sorted(p.name for p in tmp_path.glob("*.npz"))
     assert names == ["frame_0001.npz", "frame_0002.npz", "frame_0003.npz", "frame_0005.npz"]
@@ -68,7 +61,7 @@ def test_export_writes_one_file_per_frame_matching_blender(fresh, addon, tmp_pat
 
 def test_export_defaults_to_the_scene_frame_range(fresh, addon, tmp_path):
     animated_cube()
-    code, out, err = run(addon, "export", "--output", str(tmp_path))
+    code, out, err = run_cli(addon, "export", "--output", str(tmp_path))
     assert code == 0, err
     assert len(list(tmp_path.glob("frame_*.npz"))) == 5
 
@@ -83,16 +76,16 @@ def test_export_defaults_to_the_scene_frame_range(fresh, addon, tmp_path):
 def test_export_argument_and_path_errors(fresh, addon, tmp_path, argv, code, words):
     add_cube("Cube")
     (tmp_path / "file").write_text("x")
-    got, out, err = run(addon, *[a.format(tmp=tmp_path) for a in argv])
+    got, out, err = run_cli(addon, *[a.format(tmp=tmp_path) for a in argv])
     lines = [x for x in err.strip().splitlines() if x]
     assert got == code and len(lines) == 1 and words in lines[0], (got, err)
 
 
 def test_export_of_an_empty_or_broken_frame_names_it(fresh, addon, tmp_path):
     bpy.context.scene.collection.objects.link(bpy.data.objects.new("Empty", None))
-    got, out, err = run(addon, "export", "--frames", "7", "--output", str(tmp_path))
+    got, out, err = run_cli(addon, "export", "--frames", "7", "--output", str(tmp_path))
     assert got == 3 and "frame 7: no geometry" in err
     make_nan(add_cube("Broken"))
-    got, out, err = run(addon, "export", "--frames", "2", "--output", str(tmp_path))
+    got, out, err = run_cli(addon, "export", "--frames", "2", "--output", str(tmp_path))
     assert got == 5 and "frame 2:" in err and "'Broken'" in err
     assert not list(tmp_path.glob("*.npz")), "nothing is written for a frame that failed"

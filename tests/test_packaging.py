@@ -47,7 +47,7 @@ print("RESULT " + json.dumps({
     "traces": out, "frame": core.read_scene(path).frame, "calibration": cal.source,
     "bpy_imported": "bpy" in sys.modules, "package_file": hybrid_raycast.__file__,
     "version": importlib.metadata.version("hybrid_raycast"),
-    "manifest_version": core.calibration.package_version(),
+    "manifest_version": core.decide.package_version(),
     "requires": importlib.metadata.requires("hybrid_raycast"),
     "files": sorted(str(f) for f in importlib.metadata.files("hybrid_raycast") if f.suffix in (".py", ".json", ".toml")),
 }))

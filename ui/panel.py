@@ -144,7 +144,9 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
             return
         col = layout.column(align=True)
         col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
-        if props.grid_cells_per_ray > 0:
+        if props.samples_traced == 0:
+            col.label(text="  (no sample: too few rays for any structure to pay back its build)")
+        elif props.grid_cells_per_ray > 0:
             col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: "
                            f"{props.grid_cells_per_ray:.1f} cells, {props.grid_refs_per_ray:.1f} refs/ray)")
         else:

@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord
+from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord,
+                   Prior, prior)
 
 #: bump when the JSON layout or the meaning of a field changes
 CALIBRATION_FORMAT = 2
@@ -157,6 +158,15 @@ class Calibration:
         t = f.predict(n, work)
         return t, t * f.low, t * f.high
 
+    def prior(self, n: int, kinds) -> Prior:
+        """What the calibration alone says about an N-triangle scene against ``kinds`` (the
+        break-even's floor, ``cost.prior``)."""
+        return prior(self.scenes, n, [k for k in kinds if k != "grid"])
+
+    def break_even_floor(self, n: int, kinds) -> float:
+        """A lower bound on the break-even of an N-triangle scene against ``kinds``; 0: none."""
+        return self.prior(n, kinds).floor
+
     def describe(self) -> str:
         """One line per structure: the constants and their interval, in ns."""
         lines = [f"calibration ({self.source}, {self.model} model, {len(self.scenes)} scenes, {self.created or 'undated'})"]
@@ -166,8 +176,7 @@ class Calibration:
                 f"   c_R {f.c_R * 1e9:8.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]   ({f.scenes} scenes)"
             )
         for k, f in self.counts.items():
-            lines.append(f"  {k:7s} per ray = " + " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(f.terms, f.coef))
-                         + f"   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
+            lines.append(f"  {k:7s} per ray = {f.formula()}   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------
@@ -208,7 +217,8 @@ class Calibration:
                 threads=d.get("threads"), duration_s=float(d.get("duration_s", 0.0)), created=str(d.get("created", "")),
                 source=str(d.get("source", "measured")), version=version, notes=[str(x) for x in d.get("notes", [])],
                 counts={str(k): CountFit(tuple(v["terms"]), tuple(float(c) for c in v["coef"]), float(v["low"]),
-                                         float(v["high"]), int(v.get("scenes", 0))) for k, v in d.get("counts", {}).items()},
+                                         float(v["high"]), int(v.get("scenes", 0)), str(v.get("form", "linear")))
+                        for k, v in d.get("counts", {}).items()},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise CalibrationError(f"malformed calibration data ({type(e).__name__}: {e})") from None

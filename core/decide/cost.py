@@ -10,12 +10,14 @@ so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
 t ~ c_R log2 N per ray (``model='paper'``).  ``model='affine'`` adds a fixed cost to
 each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative
 residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
-small scenes.  The interval of each constant is the spread across the calibration
-scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
+small scenes.  ``model='power'`` (the default) fits T_B ~ c_B (N log2 N)^p_B and
+t ~ c_R (log2 N)^p_R by least squares on log times.  The interval of each constant is
+the spread across the calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
 after R* = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise.  ``break_even`` is
-the one place that formula is written.
+the one place that formula is written.  ``prior`` bounds R* from below with the
+calibration alone, so a plan for fewer rays need not sample at all.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-DEFAULT_MODEL = "affine"
+DEFAULT_MODEL = "power"
 DEFAULT_SPREAD = (10.0, 90.0)
 
 
@@ -186,11 +188,82 @@ def _estimate_affine(fit: KindFit, kind: str, n: int) -> Estimate:
                     a_r + fit.c_R * y, a_r + fit.c_R_low * y, a_r + fit.c_R_high * y)
 
 
+def _spans(x, min_ratio: float) -> bool:
+    """Whether the positive x span a ratio of at least ``min_ratio`` (and are not all equal)."""
+    x = np.asarray([v for v in x if v > 0], np.float64)
+    return x.size >= 3 and float(np.ptp(np.log(x))) >= math.log(min_ratio) and np.ptp(x) > 0
+
+
+def _loglog_fit(x, y) -> tuple[float, float]:
+    """(c, p) of y ~ c x^p by least squares on log y (every residual is a relative one, and
+    there is no sign constraint that could drop or keep a term between two calibrations);
+    fewer than 3 points, or a flat x, fall back on the paper's mean ratio (p = 1)."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    ok = (y > 0) & np.isfinite(y) & (x > 0)
+    x, y = x[ok], y[ok]
+    if x.size < 3 or np.ptp(np.log(x)) == 0:
+        return (float(np.mean(y / x)) if x.size else 0.0), 1.0
+    p, a = np.polyfit(np.log(x), np.log(y), 1)
+    return float(np.exp(a)), float(p)
+
+
+#: the spread of x a power law's exponent needs: a decade of N log2 N for builds, 1.5 for
+#: per-ray times in log2 N (about 1k to 30k triangles).  Narrower calibration sets get the
+#: affine fit (p = 1): the 'tiny' set's 500-1,000 triangles gave p_B near 0 and then a
+#: 20k-triangle scene an Embree break-even of 40 rays
+POWER_MIN_RATIO = {"build": 10.0, "per_ray": 1.5}
+
+
+def _power_or_affine(x, y, min_ratio: float) -> tuple[float, float, float]:
+    """(a, c, p) of y ~ a + c x^p: the log-space power law (a = 0) where x spans
+    ``min_ratio``, else the affine least squares (p = 1)."""
+    if _spans(x, min_ratio):
+        c, p = _loglog_fit(x, y)
+        return 0.0, c, p
+    a, c = _affine_lsq(x, y)
+    return a, c, 1.0
+
+
+def _fit_power(records: list[SceneRecord], kind: str, spread) -> KindFit:
+    """T_B ~ c_B (N log2 N)^p_B and t ~ c_R (log2 N)^p_R, fitted in log space: a power law
+    bends where the affine model needs a fixed term, and with no constraint to switch on or
+    off its constants move smoothly with the timings (issue 14: two calibrations in a row
+    gave affine build constants 90% apart).  Where the calibration scenes' sizes are too
+    close to measure an exponent (``POWER_MIN_RATIO``) it is the affine model.  The interval
+    scales c by the spread of measured / fitted over the scenes."""
+    have = [r for r in records if kind in r.kinds]
+    xb, yb = [nlog2n(r.triangles) for r in have], [r.kinds[kind].build_time for r in have]
+    xr, yr = [log2n(r.triangles) for r in have], [r.kinds[kind].per_ray for r in have]
+    ab, cb, pb = _power_or_affine(xb, yb, POWER_MIN_RATIO["build"])
+    ar, cr, pr = _power_or_affine(xr, yr, POWER_MIN_RATIO["per_ray"])
+
+    def spread_of(x, y, a, c, p):
+        q = [yi / (a + c * xi ** p) for xi, yi in zip(x, y) if a + c * xi ** p > 0 and yi > 0]
+        if not q:
+            return [1.0, 1.0]
+        lo, hi = (float(v) for v in np.percentile(q, spread))
+        return [min(lo, 1.0), max(hi, 1.0)]
+
+    qb, qr = spread_of(xb, yb, ab, cb, pb), spread_of(xr, yr, ar, cr, pr)
+    return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have),
+                   extra={"p_B": pb, "p_R": pr, "a_B": ab, "a_R": ar})
+
+
+def _estimate_power(fit: KindFit, kind: str, n: int) -> Estimate:
+    """a + c x^p with the interval on c (a = 0 where the exponent was fitted)."""
+    x, y = nlog2n(n), log2n(n)
+    xb, yr = x ** fit.extra.get("p_B", 1.0), y ** fit.extra.get("p_R", 1.0)
+    a_b, a_r = fit.extra.get("a_B", 0.0), fit.extra.get("a_R", 0.0)
+    return Estimate(kind, a_b + fit.c_B * xb, a_b + fit.c_B_low * xb, a_b + fit.c_B_high * xb,
+                    a_r + fit.c_R * yr, a_r + fit.c_R_low * yr, a_r + fit.c_R_high * yr)
+
+
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
-#: KindFit.extra.  'affine' (issue 4, item 5) is the default: it cuts the leave-one-out
-#: break-even error on the calibration scenes and the build / per-ray errors on the real
-#: meshes (docs/report/report.md has both models side by side).
-MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine)}
+#: KindFit.extra.  'power' (issue 14) is the default: fitted in log space it has the lowest
+#: held-out build error on the real meshes, with no fixed term that a calibration can drop
+#: (BENCHMARKS.md, issue 14; 'affine' was the default from issue 4).
+MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine),
+          "power": (_fit_power, _estimate_power)}
 
 
 def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread=DEFAULT_SPREAD) -> dict[str, KindFit]:
@@ -229,31 +302,62 @@ def nonneg_relative_lsq(x, y) -> np.ndarray:
     return b
 
 
+def _log_columns(x: np.ndarray, names) -> np.ndarray:
+    """The log form's regressors: 1 for the term '1' (the intercept), log(1 + term) else
+    (every count is >= 0; 1 + keeps a zero hit fraction finite)."""
+    return np.stack([np.ones(len(x)) if k == "1" else np.log1p(np.maximum(x[:, j], 0.0))
+                     for j, k in enumerate(names)], axis=1)
+
+
 @dataclass
 class CountFit:
-    """time per ray = sum_j coef[j] * terms[j] (seconds), with the spread of measured / fitted
-    over the calibration scenes as (low, high) multipliers."""
+    """time per ray from the named ``terms`` (seconds), with the spread of measured / fitted
+    over the calibration scenes as (low, high) multipliers.
+
+    form 'linear': sum_j coef[j] term_j, coefficients >= 0 (``nonneg_relative_lsq``);
+    form 'log':    exp(sum_j coef[j] L_j) with L = 1 for '1' and log(1 + term) else, a power
+                   law fitted by least squares on log time (no sign constraint, so no term is
+                   dropped in one calibration and kept in the next)."""
 
     terms: tuple
     coef: tuple
     low: float = 1.0
     high: float = 1.0
     scenes: int = 0
+    form: str = "linear"
 
     def predict(self, triangles: int, work: dict) -> float:
         t = terms(triangles, work)
+        if self.form == "log":
+            x = np.array([[t[k] for k in self.terms]], np.float64)
+            return float(np.exp(_log_columns(x, self.terms)[0] @ np.asarray(self.coef, np.float64)))
         return float(sum(c * t[k] for k, c in zip(self.terms, self.coef)))
 
+    def formula(self) -> str:
+        """The model as a reader writes it, in ns: '2.1 ns x 1 + 0.1 ns x cells' or
+        '919 ns x (1 + cells)^0.624'."""
+        if self.form == "log":
+            scale = math.exp(self.coef[self.terms.index("1")]) * 1e9
+            return f"{scale:.2f} ns" + "".join(f" x (1 + {t})^{c:.3f}" for t, c in zip(self.terms, self.coef) if t != "1")
+        return " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(self.terms, self.coef))
+
     @classmethod
-    def fit(cls, rows, names, spread=DEFAULT_SPREAD) -> "CountFit":
+    def fit(cls, rows, names, spread=DEFAULT_SPREAD, form: str = "linear") -> "CountFit":
         """rows: (triangles, work dict, measured time per ray) per scene."""
+        if form not in ("linear", "log"):
+            raise ValueError(f"unknown count-model form {form!r}; expected 'linear' or 'log'")
+        if form == "log" and "1" not in names:
+            raise ValueError("a 'log' count model needs the term '1' (its scale)")
         rows = [r for r in rows if r[2] > 0 and math.isfinite(r[2])]
         if not rows:
-            return cls(tuple(names), tuple(0.0 for _ in names))
+            return cls(tuple(names), tuple(0.0 for _ in names), form=form)
         x = np.array([[terms(n, w)[k] for k in names] for n, w, _ in rows])
         y = np.array([t for _, _, t in rows])
-        b = nonneg_relative_lsq(x, y)
-        f = cls(tuple(names), tuple(float(v) for v in b), scenes=len(rows))
+        if form == "log":
+            b, *_ = np.linalg.lstsq(_log_columns(x, names), np.log(y), rcond=None)
+        else:
+            b = nonneg_relative_lsq(x, y)
+        f = cls(tuple(names), tuple(float(v) for v in b), scenes=len(rows), form=form)
         q = [t / p for (n, w, t) in rows if (p := f.predict(n, w)) > 0]
         if q:
             lo, hi = (float(v) for v in np.percentile(q, spread))
@@ -261,26 +365,101 @@ class CountFit:
         return f
 
 
-#: the terms of each count model (``terms``): the grid's time per ray from the cells it
-#: steps through (plus a fixed cost per ray); the numpy BVH's from log2 N and the grid
-#: sample's cells and references (how much of the scene a ray passes near); Embree's from
-#: log2 N.  Chosen by leave-one-out error over the calibration scenes (issue 14,
-#: scripts/counts_study.py on 20 calibration scenes: with these, 38.9% against the numpy
-#: BVH and 24.0% against Embree, against 74.3% and 57.6% for the timed sample x ratio with
-#: a + c log2 N; measured at load 7-8 on 2 cores, so every figure carries that noise).
+#: the terms of each count model (``terms``): the grid's time per ray from the cells its
+#: sample rays step through; the numpy BVH's and Embree's from log2 N alone.  The grid
+#: sample's cells and references in the BVH's model lowered the error on the calibration
+#: scenes but not on held-out meshes, and made two calibrations in a row predict per-ray
+#: times far apart (the nonnegative fit trades log2 N against references); scripts/
+#: counts_study.py --analyse / --agree and BENCHMARKS.md (issue 14) have the figures.
 COUNT_TERMS = {
     "grid": ("1", "cells"),
-    "bvh": ("1", "log2n", "cells", "refs"),
+    "bvh": ("1", "log2n"),
     "embree": ("1", "log2n"),
 }
 
 
-def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None) -> dict[str, CountFit]:
+#: the form of each count model (``CountFit.form``): a power law in (1 + cells) for the
+#: grid (the lowest held-out error), nonnegative sums a + b log2 N for the structures (the
+#: power law in log2 N extrapolated worse and moved more between calibrations)
+COUNT_FORMS = {"grid": "log", "bvh": "linear", "embree": "linear"}
+
+
+def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None) -> dict[str, CountFit]:
     """A CountFit per kind ('grid' and the structures) over the records with work counts."""
     terms_of = dict(COUNT_TERMS, **(terms_of or {}))
+    forms_of = dict(COUNT_FORMS, **(forms_of or {}))
     out = {}
     for k in kinds:
         rows = [(r.triangles, r.work, r.kinds[k].per_ray) for r in records if r.work and k in r.kinds]
         if len(rows) >= 3 and k in terms_of:
-            out[k] = CountFit.fit(rows, terms_of[k], spread)
+            out[k] = CountFit.fit(rows, terms_of[k], spread, forms_of.get(k, "linear"))
     return out
+
+
+# -- a prior bound on the break-even, before any sample (issue 14) -----------------------------
+
+#: the floor's safety factor: a bound from extremes of ~20 scenes' timings, halved because
+#: timings on a shared machine move by 20-40% between runs (and the scene is not among them)
+FLOOR_MARGIN = 0.5
+
+
+def _power_envelope(x, y, side: str) -> tuple[float, float]:
+    """(c, p) with y_i >= c x_i^p for all i (side 'low') or <= (side 'high'): the log-space
+    power law through the points, shifted to their lowest / highest ratio; with x spanning
+    less than a decade, p = 1 (an exponent from close sizes would not extrapolate)."""
+    c, p = _loglog_fit(x, y) if _spans(x, 10.0) else (float(np.mean(np.asarray(y) / np.asarray(x))), 1.0)
+    q = [yi / (c * xi ** p) for xi, yi in zip(x, y) if yi > 0 and xi > 0]
+    if not q or c <= 0:
+        return 0.0, 1.0
+    return c * (min(q) if side == "low" else max(q)), p
+
+
+@dataclass
+class Prior:
+    """What the calibration alone says about an N-triangle scene, before any sample.
+
+    floor: a lower bound on the break-even against every candidate (0: none);
+    grid_per_ray: the slowest grid time per ray the calibration scenes imply;
+    per_ray: {kind: grid_per_ray less the largest gain per ray any calibration scene showed},
+    figures under which each candidate's break-even is at least ``floor / FLOOR_MARGIN``."""
+
+    floor: float = 0.0
+    grid_per_ray: float = 0.0
+    per_ray: dict = field(default_factory=dict)
+
+
+def _ceiling(x, y, n: float) -> float:
+    """The high power-law envelope of (x, y) at n; 0 with fewer than 3 points."""
+    if len(x) < 3:
+        return 0.0
+    c, p = _power_envelope(x, y, "high")
+    return c * float(n) ** p
+
+
+def prior(records: list[SceneRecord], n: int, kinds) -> Prior:
+    """A lower bound on R* = T_B^H / (t_G - t_H) from the calibration scenes alone.
+
+    R*_H >= T_B,low(N) / g_high(N): the lowest build and the largest gain per ray g = t_G - t_H
+    any calibration scene showed, as power laws (in N log2 N and N) through the extremes; g is
+    also bounded by the grid's slowest time per ray (t_H >= 0).  The floor is FLOOR_MARGIN
+    times the least of these over the candidates: below it the grid wins without a sample, so
+    a plan for so few rays need not pay for one.  No floor without 3 scenes measuring the
+    grid and each candidate."""
+    grid = [r for r in records if "grid" in r.kinds and r.triangles > 0]
+    t_g = _ceiling([r.triangles for r in grid], [r.kinds["grid"].per_ray for r in grid], n) if n > 0 else 0.0
+    if not t_g > 0 or not kinds:
+        return Prior(0.0, t_g)
+    bounds, per_ray = [], {}
+    for k in kinds:
+        have = [r for r in grid if k in r.kinds]
+        if len(have) < 3:
+            return Prior(0.0, t_g)  # a candidate the calibration cannot bound: no floor
+        cb, pb = _power_envelope([nlog2n(r.triangles) for r in have], [r.kinds[k].build_time for r in have], "low")
+        gain = [(r.triangles, r.kinds["grid"].per_ray - r.kinds[k].per_ray) for r in have]
+        gain = [(x, y) for x, y in gain if y > 0]
+        g = min(t_g, _ceiling([x for x, _ in gain], [y for _, y in gain], n)) if len(gain) >= 3 else t_g
+        if not g > 0:
+            g = t_g
+        bounds.append(cb * nlog2n(n) ** pb / g)
+        per_ray[k] = max(t_g - g, 0.0)
+    return Prior(FLOOR_MARGIN * min(bounds), t_g, per_ray)

@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from .cost import DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, break_even, log2n, nlog2n
+from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, break_even, log2n, nlog2n
 from .rule import REUSES_SAMPLES, choose
 
 #: the ray counts of the speedup tables: 1e3 to 1e8, four points a decade
@@ -90,6 +90,9 @@ class SceneResult:
     grid_sample_per_ray: float | None = None
     reuse_estimate_time: float | None = None
     extra: dict = field(default_factory=dict)
+    #: the calibration's floor on the break-even (``Plan.break_even_floor``): for at most
+    #: this many rays the plan keeps the grid without sampling (0: no floor)
+    floor: float = 0.0
 
     @property
     def grid_sample_ratio(self) -> float | None:
@@ -174,7 +177,7 @@ def hybrid_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision for each ray count (array of names), K samples apart from the
     workload: ``rule.choose`` on the estimated costs."""
     est = {k: (s.estimated[k].build, s.estimated[k].per_ray) for k in kinds if k in s.estimated}
-    return choose(rays, s.grid_estimate_per_ray, est)
+    return choose(rays, s.grid_estimate_per_ray, est, floor=s.floor)
 
 
 def online_switch(s: SceneResult, kind: str = "bvh", batch: int = 1 << 15) -> float:
@@ -206,13 +209,14 @@ def hybrid_reuse_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision when its K samples are K of the workload's R rays:
     ``rule.choose`` with ``answered=K``."""
     est = {k: (s.estimated[k].build, s.estimated[k].per_ray) for k in kinds if k in s.estimated}
-    return choose(rays, s.grid_estimate_per_ray, est, answered=s.samples)
+    return choose(rays, s.grid_estimate_per_ray, est, answered=s.samples, floor=s.floor)
 
 
 def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]:
     """The two hybrids' totals (see the module docstring) and the plan's choices.
 
-    hybrid: K uniform samples apart from the workload, ``T_B^G + e + C(R)``;
+    hybrid: K uniform samples apart from the workload, ``T_B^G + e + C(R)``; at most
+    ``s.floor`` rays (the calibration's floor on R*) are planned without a sample, ``T_B^G + R t_G``;
     hybrid_reuse: the samples are K of the R rays and the decision weighs the rays left
     (``hybrid_reuse_choice``): ``T_B^G + e' + C(R - K)`` where the choice keeps the
     sample's answers (grid, numpy BVH), ``T_B^G + e' + C(R)`` otherwise; when R <= K the
@@ -226,9 +230,10 @@ def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]
     k = float(s.samples)
     e_reuse = s.estimate_time if s.reuse_estimate_time is None else s.reuse_estimate_time
     rest = np.where(np.isin(reuse, REUSES_SAMPLES), np.maximum(r - k, 0.0), r)
+    below = r <= s.floor  # the plan keeps the grid without sampling: no estimate to pay for
     return {
-        "hybrid": s.grid.build + s.estimate_time + chosen_cost(s, choice, r),
-        "hybrid_reuse": np.where(r <= k, s.grid.total(r), s.grid.build + e_reuse + chosen_cost(s, reuse, rest)),
+        "hybrid": np.where(below, s.grid.total(r), s.grid.build + s.estimate_time + chosen_cost(s, choice, r)),
+        "hybrid_reuse": np.where((r <= k) | below, s.grid.total(r), s.grid.build + e_reuse + chosen_cost(s, reuse, rest)),
         "choice": choice,
         "choice_reuse": reuse,
     }
@@ -396,6 +401,7 @@ MODEL_DOCS = {
     "paper": "c_B = mean T_B/(N log2 N), c_R = mean T_R/(M log2 N) (section 3)",
     "median": "the same ratios' medians",
     "affine": "T_B = a_B + c_B N log2 N, t = a_R + c_R log2 N, least squares on relative residuals",
+    "power": "T_B = c_B (N log2 N)^p_B, t = c_R (log2 N)^p_R, least squares on log times",
 }
 
 
@@ -470,7 +476,7 @@ def _ratio_of(records, k: int) -> float:
 
 
 def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: str = "counts", terms_of=None,
-                    model: str = "affine", samples: int = 16384) -> list[dict]:
+                    model: str = DEFAULT_MODEL, samples: int = 16384, forms_of=None) -> list[dict]:
     """Fit on ``train`` (SceneRecords), estimate each of ``test`` and compare its break-even
     with the one measured in its own record.
 
@@ -483,7 +489,7 @@ def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: s
     fits = model_functions(model)[0]
     est_fn = model_functions(model)[1]
     f = fits([r for r in train if kind in r.kinds], kind, DEFAULT_SPREAD)
-    counts = fit_counts(train, ("grid", kind), terms_of=terms_of)
+    counts = fit_counts(train, ("grid", kind), terms_of=terms_of, forms_of=forms_of)
     ratio = _ratio_of(train, samples)
     out = []
     for rec in test:

@@ -25,7 +25,7 @@ from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break
 #: rays per scene for each calibration scale.  The default is two chunks of the BVH
 #: (2 x 65,536 rays), so that the measured time per ray is a large workload's, spread
 #: over the structure's threads like one
-RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17}
+RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 17, "rich": 1 << 17}
 #: sample sizes K at which calibration times the grid on each scene, to correct a plan's
 #: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
 SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
@@ -87,7 +87,7 @@ def available_kinds(kinds) -> tuple[tuple[str, ...], list[str]]:
     return tuple(keep), notes
 
 
-def _prepare(mesh: TriangleMesh):
+def prepare_mesh(mesh: TriangleMesh):
     """Compute the mesh's cached arrays before timing, so no structure pays for them."""
     mesh.tri_vertices
     mesh.valid
@@ -100,7 +100,7 @@ def warm_up(kinds, *, threads=None, configs=None):
     from ..scenes import sphere
 
     warm = sphere(80)
-    _prepare(warm)
+    prepare_mesh(warm)
     o, d = uniform_rays(warm, 64, seed=0)
     for kind in kinds:
         measure(warm, kind, o, d, threads=threads, config=(configs or {}).get(kind))
@@ -171,7 +171,7 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
         origins, directions = uniform_rays(mesh, int(rays), seed=seed)
     else:
         origins, directions = rays
-    _prepare(mesh)
+    prepare_mesh(mesh)
     warm_up(kinds, threads=threads, configs=configs)
     last = {}
 
@@ -299,7 +299,7 @@ def calibrate(
     for i, (name, factory) in enumerate(scenes):
         report(i, 0, f"scene {i + 1}/{len(scenes)}: generating {name}")
         mesh = factory if isinstance(factory, TriangleMesh) else factory()
-        _prepare(mesh)
+        prepare_mesh(mesh)
         origins, directions = uniform_rays(mesh, m_rays, seed=seed + i)
         rec = SceneRecord(name, mesh.triangle_count, m_rays)
         jobs = {}

@@ -37,7 +37,12 @@ def costs(rays, grid_per_ray: float, candidates: dict, answered: int = 0) -> tup
     return names, np.stack(rows)
 
 
-def choose(rays, grid_per_ray: float, candidates: dict, answered: int = 0) -> np.ndarray:
-    """The structure (a name) with the least predicted cost for each ray count in ``rays``."""
+def choose(rays, grid_per_ray: float, candidates: dict, answered: int = 0, floor: float = 0.0) -> np.ndarray:
+    """The structure (a name) with the least predicted cost for each ray count in ``rays``.
+
+    floor: the calibration's lower bound on the break-even (``Calibration.prior``); at most
+    this many rays keep the grid whatever the costs say, since no structure pays back its
+    build there on the calibration's own evidence (and the plan takes no sample)."""
     names, c = costs(rays, grid_per_ray, candidates, answered)
-    return np.asarray(names, dtype=object)[np.argmin(c, axis=0)]
+    picked = np.asarray(names, dtype=object)[np.argmin(c, axis=0)]
+    return np.where(np.atleast_1d(np.asarray(rays, np.float64)) <= floor, "grid", picked).astype(object)
