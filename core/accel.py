@@ -16,8 +16,12 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .hits import Hits
-from .intersect import Rays, prepare_rays
+from .intersect import Rays, prepare_rays, shear_rays
 from .mesh import TriangleMesh
+
+#: fewest rays per chunk when a batch is split to give every thread a chunk
+MIN_SPLIT = 4096
+
 
 def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))
@@ -58,7 +62,7 @@ class Accel:
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Nearest hit per ray with tmin < t <= tmax; an exact tie in t goes to the lowest
         triangle index; both faces are hit (the hit convention, ../shared/DESIGN.md)."""
-        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=False)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return Hits.empty(m)
@@ -67,16 +71,28 @@ class Accel:
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some triangle is hit with tmin < t <= tmax."""
-        rays = prepare_rays(origins, directions, tmin, tmax, shear=self.uses_shear)
+        rays = prepare_rays(origins, directions, tmin, tmax, shear=False)
         m = len(rays)
         if m == 0 or self.mesh.triangle_count == 0:
             return np.zeros(m, bool)
         return np.concatenate(self._map_chunks(self._occluded_rays, rays))
 
+    def _chunk_bounds(self, m: int) -> list[tuple[int, int]]:
+        """At most ``chunk_size`` rays a chunk, the count a multiple of ``threads`` (when
+        each chunk keeps ``MIN_SPLIT`` rays: a small batch is not worth a thread pool) and
+        the sizes equal within one ray, so that no thread is left alone with the last chunk."""
+        n = -(-m // self.chunk_size)
+        if self.threads > 1 and n % self.threads:
+            n = max(n, min(-(-n // self.threads) * self.threads, m // MIN_SPLIT))
+        edges = [m * i // n for i in range(n + 1)]
+        return list(zip(edges[:-1], edges[1:]))
+
     def _map_chunks(self, fn, rays: Rays):
-        m = len(rays)
-        bounds = [(s, min(m, s + self.chunk_size)) for s in range(0, m, self.chunk_size)]
-        chunks = [rays.subset(slice(a, b)) for a, b in bounds]
+        chunks = [rays.subset(slice(a, b)) for a, b in self._chunk_bounds(len(rays))]
+        if self.uses_shear and rays.shear is None:
+            # the Woop shear is computed inside each chunk's task, so on the thread pool too
+            def fn(chunk, fn=fn):
+                return fn(shear_rays(chunk))
         if self.threads <= 1 or len(chunks) == 1:
             return [fn(c) for c in chunks]
         with ThreadPoolExecutor(self.threads) as pool:

@@ -414,7 +414,9 @@ class BVH(Accel):
       Morton bit instead of by SAH (faster build, more node visits per ray);
       ``batch=32768``: rays stepping in lockstep per chunk (bounds the working set; bigger
       pools amortise the per-step numpy calls: BENCHMARKS.md, issue 10);
-      plus ``threads`` and ``chunk_size`` (default 65536 rays) of every structure.
+      plus ``threads`` and ``chunk_size`` of every structure (default 2**20 rays: the pool
+      refills finished rays' slots in place, so it stays full until the chunk runs out and
+      only the last steps of a chunk run on few rays).
 
     Layout (read by tests and the cost model): ``node_boxes`` (W, 24) float32 per wide node
     the boxes of its 4 children as lo x, y, z then hi x, y, z, each for children 0..3 (NaN
@@ -424,7 +426,7 @@ class BVH(Accel):
     """
 
     kind = "bvh"
-    chunk_size = 1 << 16
+    chunk_size = 1 << 20
 
     def __init__(self, mesh, *, builder: str = "hlbvh", leaf_size: int = 4, sah_bins: int = 16, cluster_bits: int = 6,
                  sah_min: int = 0, batch: int = 32768, **kw):
@@ -547,8 +549,25 @@ class BVH(Accel):
         A = nxt = ndead = 0
         compact = True
         while True:
-            if compact:  # drop finished rays, refill from the chunk
+            if compact:  # refill finished rays' slots from the chunk, else drop them
                 compact = False
+                if ndead and nxt < m:
+                    # in place: a finished ray's column (its stack empty, ptr at its own
+                    # column) takes a new ray, so nothing moves while the chunk lasts
+                    free = np.flatnonzero(dead[:A])
+                    k = min(len(free), m - nxt)
+                    f = free[:k]
+                    new = slice(nxt, nxt + k)
+                    rid[f] = np.arange(nxt, nxt + k)
+                    cur[f] = 0
+                    ptr[f] = f
+                    org[:, f] = rays.origins[new].T
+                    inv[:, f] = inv_all[new].T
+                    tmin[f] = rays.tmin[new]
+                    tlim[f] = rays.tmax[new]
+                    dead[f] = False
+                    nxt += k
+                    ndead -= k
                 if ndead:
                     keep = np.flatnonzero(~dead[:A])
                     n = len(keep)

@@ -175,13 +175,16 @@ class UniformGrid(Accel):
         15 cells); a ray in an empty cell with r >= 1
         jumps through that cube in one DDA step, to the last cell of the cube on its
         path.  Cells skipped hold no reference, so the hits are those of the plain DDA.
+    ``pool`` (default 2**17): live rays stepping in lockstep; the pool is refilled from
+        the chunk (``chunk_size``, default 2**20 rays) as rays finish, so only a chunk's
+        last steps run on few rays, whose numpy calls cost as much as full ones.
     """
 
     kind = "grid"
-    chunk_size = 1 << 16
+    chunk_size = 1 << 20
 
     def __init__(self, mesh, *, density: float = 2.0, max_cells: int = 1 << 24, margin: float = 1e-3,
-                 pair_cap: int = 1 << 17, prefilter: bool = True, skip: bool = True, **kw):
+                 pair_cap: int = 1 << 17, prefilter: bool = True, skip: bool = True, pool: int = 1 << 17, **kw):
         if not density > 0:
             raise ValueError(f"density must be > 0, got {density}")
         self.density = float(density)
@@ -190,6 +193,7 @@ class UniformGrid(Accel):
         self.pair_cap = max(1, int(pair_cap))
         self.prefilter = bool(prefilter)
         self.skip = bool(skip)
+        self.pool = max(1, int(pool))
         super().__init__(mesh, **kw)
 
     # -- build -----------------------------------------------------------------------
@@ -453,7 +457,8 @@ class UniformGrid(Accel):
         tv = self.mesh.tri_vertices
         best = None if any_hit else NearestHits(m)
         hit = np.zeros(m, bool)
-        F, I = self._setup(rays)
+        F, I = np.empty((9, 0), F64), np.empty((5, 0), np.int64)
+        nxt = 0
         s_lo, s_hi, tris, tmax = self._starts_lo, self._starts_hi, self.cell_tris, rays.tmax
         R = self._filter_rays(rays) if self.prefilter else None
 
@@ -466,7 +471,17 @@ class UniformGrid(Accel):
                     owner, tri = np.take(owner, k), np.take(tri, k)
                 yield owner, np.take(rr, owner), tri
         skip = self._skip
-        while I.shape[1]:
+        while True:
+            if nxt < m and I.shape[1] * 8 <= self.pool * 7:  # refill the pool from the chunk
+                k = min(m - nxt, self.pool - I.shape[1])
+                Fn, In = self._setup(rays.subset(slice(nxt, nxt + k)))
+                In[4] += nxt
+                F, I = np.concatenate([F, Fn], axis=1), np.concatenate([I, In], axis=1)
+                nxt += k
+            if not I.shape[1]:
+                if nxt < m:
+                    continue
+                break
             # empty-space skip: a ray in an empty cell whose cube of radius r around it is
             # empty moves to the cell of that cube where its path leaves the cube.  Per axis
             # it crosses n = ceil((t_out - t_next) / t_delta) boundaries before t_out,
@@ -551,16 +566,15 @@ class UniformGrid(Accel):
         NaN from 0 * inf (a zero direction component on a box face) keeps the pair:
         the test is ``not (t_near > t_far)``.
         """
-        B = self._tri_box.reshape(-1)
-        t6 = tri.astype(np.intp) * 6
+        B = self._tri_box.take(tri, axis=0)  # one row (one cache line) per pair, then its columns
         e = np.take(R[6], r)
         t_near = t_far = None
         with np.errstate(invalid="ignore", over="ignore"):
             for k in range(3):
                 o = np.take(R[k], r)
                 iv = np.take(R[3 + k], r)
-                a = (B[k:].take(t6) - o - e) * iv
-                b = (B[3 + k:].take(t6) - o + e) * iv
+                a = (B[:, k] - o - e) * iv
+                b = (B[:, 3 + k] - o + e) * iv
                 lo_k, hi_k = np.minimum(a, b), np.maximum(a, b)
                 t_near = lo_k if t_near is None else np.maximum(t_near, lo_k)
                 t_far = hi_k if t_far is None else np.minimum(t_far, hi_k)

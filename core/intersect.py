@@ -107,8 +107,14 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
     lo, hi = lo.astype(F32), hi.astype(F32)  # a fresh (M,) array each, also from a broadcast scalar
-    if not shear:
-        return Rays(o32, d32, lo, hi, None, None, None, None)
+    rays = Rays(o32, d32, lo, hi, None, None, None, None)
+    return shear_rays(rays) if shear else rays
+
+
+def shear_rays(rays: Rays) -> Rays:
+    """The same validated rays with Woop et al.'s per-ray shear constants added."""
+    o32, d32, lo, hi = rays.origins, rays.directions, rays.tmin, rays.tmax
+    m = len(o32)
     ad = np.abs(d32)
     ax, ay, az = ad[:, 0], ad[:, 1], ad[:, 2]
     # the dominant axis, the first on ties (as argmax), without a reduction over rows of three

@@ -244,6 +244,18 @@ def test_more_rays_than_a_chunk_on_several_threads_match_one_thread():
     _assert_same_hits(many, one, "3 threads, chunks of 700")
 
 
+def test_any_hit_with_finished_rays_replaced_in_the_pool_matches_brute_force():
+    # batch=64 of chunks of ~1700 rays: finished rays' slots (any hit ends a ray early,
+    # its stack not empty) are refilled in place many times
+    mesh = scene("soup")
+    o, d = core.uniform_rays(mesh, 5000, seed=10)
+    got = core.build(mesh, "bvh", threads=3, chunk_size=1700, batch=64).occluded(o, d, 0.0, 0.5)
+    want = core.build(mesh, "brute").occluded(o, d, 0.0, 0.5)
+    w = np.flatnonzero(got != want)
+    assert 0.1 < want.mean() < 0.9, f"set-up: {want.mean():.2f} of the rays are occluded"
+    assert w.size == 0, f"occluded differs on {w.size} rays, first {w[0] if w.size else None}: bvh {got[w[:1]]}"
+
+
 # -- small and empty meshes -----------------------------------------------------------------
 
 

@@ -348,6 +348,18 @@ def test_threads_and_chunks_do_not_change_the_hits():
     assert_same_hits(many, one, "threads=3, chunk_size=257 vs threads=1")
 
 
+def test_a_pool_refilled_many_times_gives_brute_force_hits_and_occlusion():
+    # pool=50 of chunks of ~1000 rays: the pool is refilled from the chunk some 20 times
+    mesh = torus()
+    o, d = random_rays(mesh, 3000, seed=82)
+    brute = core.build(mesh, "brute")
+    grid = core.build(mesh, "grid", threads=2, chunk_size=1000, pool=50)
+    assert_same_hits(grid.trace(o, d), brute.trace(o, d), "pool=50 vs brute force")
+    got, want = grid.occluded(o, d, 0.0, 0.7), brute.occluded(o, d, 0.0, 0.7)
+    w = np.flatnonzero(got != want)
+    assert w.size == 0, f"occluded differs on {w.size} rays, first {w[0] if w.size else None}: grid {got[w[:1]]}"
+
+
 @pytest.mark.parametrize("shape", [(5, 7, 9), (1, 1, 40), (24, 3, 1), (30, 26, 33)])
 def test_empty_radius_cubes_hold_no_occupied_cell_stay_inside_the_grid_and_are_at_least_half_the_largest(shape):
     rng = np.random.default_rng(sum(shape))
