@@ -77,6 +77,7 @@ class TriangleMesh:
         self.object_names = list(self.object_names)
         self._tri_vertices = None
         self._valid = None
+        self._bounds = None
 
     # -- derived arrays (computed once, on demand) ---------------------------------
     @property
@@ -100,12 +101,18 @@ class TriangleMesh:
         return self._valid
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) float32 of the vertices that triangles use; zeros for an empty mesh."""
-        if self.triangle_count == 0:
-            z = np.zeros(3, np.float32)
-            return z, z.copy()
-        used = self.tri_vertices.reshape(-1, 3)
-        return used.min(axis=0), used.max(axis=0)
+        """(lo, hi) float32 of the vertices that triangles use; zeros for an empty mesh.
+
+        Computed once, like the other derived arrays: a column reduction over every corner
+        takes about 0.25 s at 1M triangles, which every ``plan()`` on a cached scene paid
+        again for its uniform sample box.  Copies are returned, so a caller cannot change it."""
+        if self._bounds is None:
+            if self.triangle_count == 0:
+                self._bounds = (np.zeros(3, np.float32), np.zeros(3, np.float32))
+            else:
+                used = self.tri_vertices.reshape(-1, 3)
+                self._bounds = (used.min(axis=0), used.max(axis=0))
+        return self._bounds[0].copy(), self._bounds[1].copy()
 
     def areas(self) -> np.ndarray:
         """(T,) float64 triangle areas."""

@@ -203,3 +203,15 @@ def test_occluded_agrees_with_trace_hit():
     occ = acc.occluded(o, d, tmax=tmax)
     w = np.flatnonzero(occ != h.hit)
     assert w.size == 0, f"{w.size} rays: occluded != trace().hit, first {describe_ray(w[0], o, d)}: occluded {occ[w[0]]}, trace triangle {h.triangle[w[0]]}"
+
+
+def test_mesh_bounds_are_those_of_the_used_vertices_and_a_caller_cannot_change_them():
+    # vertex 3 is used by no triangle, so it must not widen the box
+    v = np.array([[0, 0, 0], [1, 2, 0], [0, 1, 3], [-9, 9, 9]], np.float32)
+    mesh = core.TriangleMesh(v, np.array([[0, 1, 2]]))
+    lo, hi = mesh.bounds()
+    assert lo.tolist() == [0, 0, 0] and hi.tolist() == [1, 2, 3]
+    lo[:] = 100  # bounds are computed once; what a caller does with its copy stays its own
+    assert mesh.bounds()[0].tolist() == [0, 0, 0]
+    empty = core.TriangleMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    assert [b.tolist() for b in empty.bounds()] == [[0, 0, 0], [0, 0, 0]]
