@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 import resource
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _package import load_addon  # noqa: E402
+from _timing import median_time  # noqa: E402
 
 import bpy  # noqa: E402
 from mathutils import Vector  # noqa: E402
@@ -67,15 +67,6 @@ def ray_cast_loop(scene, dg, o, d):
     for i in range(len(o)):
         out += scene.ray_cast(dg, Vector(o[i]), Vector(d[i]))[0]
     return out
-
-
-def median_time(fn, runs):
-    ts = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def per_call(runs):

@@ -49,6 +49,7 @@ from hybrid_raycast.core.mesh import TriangleMesh  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "scripts"))
 from _memory import PeakMemory, trim  # noqa: E402
+from _timing import median_time  # noqa: E402
 from bench_trace import parse_size  # noqa: E402
 from hybrid_raycast.operators import extract  # noqa: E402
 
@@ -101,12 +102,7 @@ def timed(f):
 
 def median_cpu(f, runs):
     """Median process CPU time of f: steadier than wall time when other jobs share the cores."""
-    ts = []
-    for _ in range(runs):
-        c = time.process_time()
-        f()
-        ts.append(time.process_time() - c)
-    return statistics.median(ts)
+    return median_time(f, runs, clock=time.process_time)
 
 
 def breakdown(depsgraph, runs):

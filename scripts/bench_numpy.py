@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _package import core_package  # noqa: E402
+from _timing import median_time  # noqa: E402
 
 core_package()
 from hybrid_raycast import core  # noqa: E402
@@ -70,15 +70,6 @@ def make_scene(name, m, seed):
     return mesh, {"random": uniform_rays(mesh, m, seed), "camera": camera_rays(**cam)}
 
 
-def timed(fn, repeats):
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="monkey,ico")
@@ -114,7 +105,7 @@ def main(argv=None):
             base = None
             ref = None
             if peer is not None:
-                s = timed(lambda: peer.trace(o, d), args.peer_repeats)
+                s = median_time(lambda: peer.trace(o, d), args.peer_repeats)
                 base = m / s / 1e6
                 print(f"| {label} | {rk} | BVHTree loop | {peer_build:.2f} | {base:.3f} | 1.00x |", flush=True)
             for kind, a in structs.items():
@@ -125,7 +116,7 @@ def main(argv=None):
                         ref = h
                     elif not (np.array_equal(h.triangle, ref.triangle) and np.array_equal(h.t, ref.t)):
                         print(f"!! {kind} threads={n} differs from the first tracer", flush=True)
-                    s = timed(lambda: a.trace(o, d), args.repeats)
+                    s = median_time(lambda: a.trace(o, d), args.repeats)
                     r = m / s / 1e6
                     ratio = f"{r / base:.2f}x" if base else "-"
                     print(f"| {label} | {rk} | {kind} {n}T | {a.build_time:.2f} | {r:.3f} | {ratio} |", flush=True)
