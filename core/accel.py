@@ -97,10 +97,14 @@ class Accel:
             # the Woop shear is computed inside each chunk's task, so on the thread pool too
             def fn(chunk, fn=fn):
                 return fn(shear_rays(chunk))
-        if self.threads <= 1 or len(chunks) == 1:
-            return [fn(c) for c in chunks]
+        return self._in_pool(fn, chunks)
+
+    def _in_pool(self, fn, items) -> list:
+        """[fn(x) for x in items], on a pool of ``threads`` threads when there are several."""
+        if self.threads <= 1 or len(items) <= 1:
+            return [fn(x) for x in items]
         with ThreadPoolExecutor(self.threads) as pool:
-            return list(pool.map(fn, chunks))
+            return list(pool.map(fn, items))
 
     def stats(self) -> dict:
         return {"kind": self.kind, "triangles": self.mesh.triangle_count, "build_time_s": self.build_time}

@@ -46,7 +46,6 @@ given to Embree, and Embree's primID is mapped back to the mesh's triangle index
 from __future__ import annotations
 
 import importlib.util
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -204,18 +203,12 @@ class EmbreeAccel(Accel):
         return m, prepare
 
     def _each_chunk(self, fn, m, *args):
-        """``fn(a, b)`` for every chunk, on the pool when there are several.  Validity is per
-        ray, so a chunk's ValueError means the whole batch is invalid: ``prepare_rays`` then
-        names the bad rays by their index in the batch, as ``Accel.trace`` would."""
-        bounds = [(a, min(m, a + self.chunk_size)) for a in range(0, m, self.chunk_size)]
+        """``fn(a, b)`` for every chunk of ``Accel._chunk_bounds``, on the pool when there are
+        several.  Validity is per ray, so a chunk's ValueError means the whole batch is
+        invalid: ``prepare_rays`` then names the bad rays by their index in the batch, as
+        ``Accel.trace`` would."""
         try:
-            if self.threads <= 1 or len(bounds) == 1:
-                for a, b in bounds:
-                    fn(a, b)
-            else:
-                with ThreadPoolExecutor(self.threads) as pool:
-                    for _ in pool.map(lambda ab: fn(*ab), bounds):
-                        pass
+            self._in_pool(lambda ab: fn(*ab), self._chunk_bounds(m))
         except ValueError:
             prepare_rays(*args, shear=False)
             raise
