@@ -11,7 +11,7 @@
 The engine table (``--engines``): on 3 icospheres (983,040 triangles) and Suzanne at
 level 5 (1,007,616), 1M random rays and about 1M camera rays, raw embreex (a thread
 pool over 64k-ray chunks, and one thread), ``core.build(mesh, 'embree')`` with its
-defaults and with threads=1, the numpy BVH and grid, Blender's BVHTree loop (on a
+defaults, with threads=1 and with robust=False (Open3D's scene flags), the numpy BVH and grid, Blender's BVHTree loop (on a
 strided subset) and Open3D's ``RaycastingScene.cast_rays``, which runs in its own venv
 (``.venv-open3d``; scripts/bench_open3d.py) on the same rays saved to a temporary
 directory.  Columns: build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and
@@ -757,7 +757,7 @@ ENGINE_SCENES = {
 }
 OPEN3D_PYTHON = ROOT / ".venv-open3d" / "bin" / "python"
 #: the rows of the engine table (keys for --tracers)
-ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "bvh", "grid", "bvhtree", "open3d")
+ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "embree_fast", "bvh", "grid", "bvhtree", "open3d")
 
 
 def icospheres_mesh():
@@ -927,6 +927,9 @@ def engine_rows(scene, args, tmp):
         ("raw1", lambda: RawEmbreex(mesh, 1)),
         ("embree", lambda: EngineProject(mesh, "embree", f"core.build(mesh, 'embree'), defaults ({core.accel.default_threads()} threads)")),
         ("embree1", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', threads=1)", threads=1)),
+        # Open3D's scene has no flags (RaycastingScene.cpp: rtcNewScene, no rtcSetSceneFlags);
+        # embreex's and ours are RTC_SCENE_FLAG_ROBUST: this row shows what that costs
+        ("embree_fast", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', robust=False)", robust=False)),
         ("bvh", lambda: EngineProject(mesh, "bvh", f"numpy BVH ({threads} threads)", threads=threads)),
         ("grid", lambda: EngineProject(mesh, "grid", f"numpy grid ({threads} threads)", threads=threads)),
         ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
@@ -937,7 +940,7 @@ def engine_rows(scene, args, tmp):
     caps = {"bvh": args.numpy_rays, "grid": args.numpy_rays, "bvhtree": args.loop_rays}
     tracers, rows = {}, {}
     for key, make in makers:
-        if key in ("raw", "raw1", "embree", "embree1") and not has_embree:
+        if key in ("raw", "raw1", "embree", "embree1", "embree_fast") and not has_embree:
             rows[key] = dict(name=key, error="embreex is not installed")
             continue
         try:
@@ -1043,6 +1046,8 @@ def engine_goals(scene, rows):
         ("project Embree (defaults) / Open3D, trace", ("embree", "open3d"), ">= 0.8x"),
         ("project Embree, 2 threads / 1 thread", ("embree", "embree1"), "reported (>= 1.7x)"),
         ("raw embreex, pool / 1 thread", ("raw", "raw1"), "reported"),
+        ("project Embree robust=False (Open3D's scene flags) / Open3D, trace", ("embree_fast", "open3d"), "reported"),
+        ("project Embree robust=False / robust (default), trace", ("embree_fast", "embree"), "reported"),
         ("numpy BVH / BVHTree loop", ("bvh", "bvhtree"), ">= 2x random, >= 1x camera"),
         ("numpy grid / BVHTree loop", ("grid", "bvhtree"), ">= 1x random"),
     ]
