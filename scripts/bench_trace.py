@@ -952,12 +952,11 @@ def engine_rows(scene, args, tmp):
             rows[key] = dict(name=tr.name, builds=[], traces={k: [] for k in scene["rays"]}, prim={}, rays={})
         for r in range(args.build_repeats or args.repeats):
             for key, tr in tracers.items():
-                if r == 0 and key != "open3d":  # the first round also gives the peak memory
-                    with PeakMemory(traced=False) as pm:
-                        rows[key]["builds"].append(tr.build())
+                # the first round also gives the peak memory
+                with PeakMemory(traced=False) if r == 0 and key != "open3d" else contextlib.nullcontext() as pm:
+                    rows[key]["builds"].append(tr.build())
+                if pm is not None:
                     rows[key]["rss"] = pm.rss
-                    continue
-                rows[key]["builds"].append(tr.build())
                 if key == "raw":
                     rows[key].setdefault("splits", []).append(tr.split)
         for kind, (o, d) in scene["rays"].items():
