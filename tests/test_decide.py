@@ -144,9 +144,15 @@ def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, 1e-7 + 2e-8 * c + 5e-9 * f)
             for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
     f = cost.CountFit.fit(rows, ("1", "cells", "refs"))
-    assert f.coef == pytest.approx((1e-7, 2e-8, 5e-9), rel=1e-9)
+    # stated at the reference (15 cells, 0 refs): the '1' constant is the time per ray there
+    assert f.refs == (0.0, 15.0, 0.0)
+    assert f.coef == pytest.approx((1e-7 + 2e-8 * 15, 2e-8, 5e-9), rel=1e-9)
+    assert f.constants() == pytest.approx({"at ref": 4e-7, "x cells": 2e-8, "x refs": 5e-9}, rel=1e-9)
     assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
     assert f.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
+    raw = cost.CountFit.fit(rows, ("1", "cells", "refs"), reference={})  # format 2: stated at zero counts
+    assert raw.refs == () and raw.coef == pytest.approx((1e-7, 2e-8, 5e-9), rel=1e-9)
+    assert raw.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
     t = cost.terms(1 << 10, {"cells": 3, "refs": 4, "hit": 0.25, "length": 0.5})
     assert (t["log2n"], t["hit_log2n"], t["length_log2n"]) == (10.0, 2.5, 5.0)
 
@@ -159,10 +165,14 @@ def test_log_count_fit_recovers_an_exact_power_law_and_predicts_it():
             for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
     f = cost.CountFit.fit(rows, ("1", "cells", "refs"), form="log")
     assert f.form == "log"
-    assert f.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
+    # the scale is the time per ray at the reference, 15 cells (1 + cells = 16) and 0 refs
+    assert f.coef == pytest.approx((math.log(3e-7 * 16 ** 0.6), 0.6, 0.25), rel=1e-9)
     assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
     assert f.predict(1 << 20, {"cells": 99, "refs": 15}) == pytest.approx(3e-7 * 100 ** 0.6 * 16 ** 0.25, rel=1e-9)
-    assert f.formula() == "300.00 ns x (1 + cells)^0.600 x (1 + refs)^0.250"
+    assert f.formula() == f"{3e-7 * 16 ** 0.6 * 1e9:.2f} ns x ((1 + cells) / 16)^0.600 x (1 + refs)^0.250"
+    raw = cost.CountFit.fit(rows, ("1", "cells", "refs"), form="log", reference={})
+    assert raw.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
+    assert raw.formula() == "300.00 ns x (1 + cells)^0.600 x (1 + refs)^0.250"
     with pytest.raises(ValueError, match="form"):
         cost.CountFit.fit(rows, ("1", "cells"), form="cubic")
     with pytest.raises(ValueError, match="'1'"):
@@ -184,7 +194,10 @@ def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
                                                                    1000 * 1e-7 * n ** 0.8, 1000)})
             for n in (8, 11, 14, 17, 20)]
     f = cost.fit(recs, ("bvh",), model="power")["bvh"]
-    assert (f.c_B, f.extra["p_B"], f.c_R, f.extra["p_R"]) == pytest.approx((2e-8, 1.1, 1e-7, 0.8), rel=1e-9)
+    # c_B, c_R: the build and the time per ray of a 65,536-triangle scene (N log2 N = 2^20, log2 N = 16)
+    assert (f.c_B, f.extra["p_B"], f.c_R, f.extra["p_R"]) == pytest.approx((2e-8 * 2.0 ** 22, 1.1, 1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
+    assert cost.fit_constants(f, "power") == pytest.approx(
+        {"build at N_REF": 2e-8 * 2.0 ** 22, "p_B": 1.1, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
     e = cost.MODELS["power"][1](f, "bvh", 1 << 16)  # N log2 N = 1,048,576, log2 N = 16
     assert (e.build, e.per_ray) == pytest.approx((2e-8 * 1048576 ** 1.1, 1e-7 * 16 ** 0.8), rel=1e-9)
     assert e.build_low <= e.build <= e.build_high
@@ -196,7 +209,7 @@ def test_power_model_on_close_sizes_is_the_affine_fit():
     recs = [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(1e-3 + 2e-8 * cost.nlog2n(n), 1000 * 1e-7 * math.log2(n) ** 0.8, 1000)})
             for n in (500, 600, 700, 850, 1000)]
     f = cost.fit(recs, ("bvh",), model="power")["bvh"]
-    assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8, 1.0), rel=1e-6)
+    assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8 * 2.0 ** 20, 1.0), rel=1e-6)
     e = cost.MODELS["power"][1](f, "bvh", 20000)
     assert e.build == pytest.approx(1e-3 + 2e-8 * cost.nlog2n(20000), rel=1e-6)
 
