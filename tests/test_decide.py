@@ -322,3 +322,90 @@ def test_the_break_even_and_the_rule_each_have_one_home():
     assert homes == {"break_even": ["core/decide/cost.py"], "choose": ["core/decide/rule.py"]}, homes
     for alias in ("calibration", "report"):
         assert importlib.util.find_spec(f"{cost.__package__.rsplit('.', 1)[0]}.{alias}") is None, alias
+
+
+# -- the 'terms' build model and the constants' reference sizes (issue 14) ---------------------
+
+def _terms_law(n):
+    """A build that is exactly 40 ms + 5 ms per doubling beyond 65,536 triangles + 120 ms per
+    65,536 triangles + 15 ms per 65,536 triangles and doubling: the 'terms' model's form."""
+    lg = math.log2(n) - 16
+    return 0.04 + 0.005 * lg + 0.12 * n / 65536 + 0.015 * n / 65536 * lg
+
+
+def _terms_records(ns=(500, 2000, 8000, 30000, 120000, 500000, 1000000)):
+    return [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(_terms_law(n), 1000 * 1e-7 * math.log2(n) ** 0.8, 1000)})
+            for n in ns]
+
+
+def test_terms_model_recovers_exact_constants_and_estimates_the_formula():
+    """On builds that follow a + d (log2 N - 16) + b N/65,536 + c (N/65,536)(log2 N - 16) exactly,
+    the fit returns (a, d, b, c), c_B is the build at 65,536 triangles (a + b), and the estimate
+    for any N at or above the smallest scene is the formula."""
+    f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
+    assert f.extra["terms_B"] == ["1", "log2n-16", "n", "n(log2n-16)"]
+    assert f.extra["coef_B"] == pytest.approx([0.04, 0.005, 0.12, 0.015], rel=1e-9)
+    assert f.c_B == pytest.approx(0.16, rel=1e-9) and f.extra["n_min"] == 500
+    assert (f.c_B_low, f.c_B_high) == pytest.approx((0.16, 0.16), rel=1e-9)  # no scatter: no interval
+    est = cost.MODELS["terms"][1]
+    for n in (500, 12345, 65536, 3_000_000):
+        assert est(f, "bvh", n).build == pytest.approx(_terms_law(n), rel=1e-9)
+    # 65,536 triangles by hand: log2 N - 16 = 0, N / 65,536 = 1
+    assert est(f, "bvh", 65536).build == pytest.approx(0.04 + 0.12, rel=1e-12)
+    # per ray: the power model's, stated at log2 N = 16
+    assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
+    assert est(f, "bvh", 1 << 12).per_ray == pytest.approx(1e-7 * 12 ** 0.8, rel=1e-9)
+    assert cost.fit_constants(f, "terms") == pytest.approx(
+        {"build 1": 0.04, "build log2n-16": 0.005, "build n": 0.12, "build n(log2n-16)": 0.015,
+         "build at N_REF": 0.16, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
+
+
+def test_terms_model_estimates_a_scene_below_the_calibration_as_the_smallest_scene():
+    """Below the smallest calibration scene the per-level term is not measured (here it would
+    make a 2-triangle build 40 - 5 x 15 = -35 ms): such a scene costs the smallest scene's build."""
+    f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
+    assert _terms_law(2) < 0
+    assert cost.MODELS["terms"][1](f, "bvh", 2).build == pytest.approx(_terms_law(500), rel=1e-9)
+
+
+def test_terms_model_with_too_few_scenes_is_the_power_model():
+    recs = _terms_records((1000, 30000, 1000000))
+    assert cost.fit(recs, ("bvh",), model="terms")["bvh"] == cost.fit(recs, ("bvh",), model="power")["bvh"]
+
+
+def test_terms_model_spread_brackets_measured_over_fitted():
+    """The interval is the 10th/90th percentile of measured / fitted over the scenes, applied to
+    every N as a ratio of the build."""
+    recs = _terms_records()
+    for r, q in zip(recs, (1.3, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0)):
+        r.kinds["bvh"].build_time *= q
+    f = cost.fit(recs, ("bvh",), model="terms")["bvh"]
+    e = cost.MODELS["terms"][1](f, "bvh", 200000)
+    assert e.build_low < e.build < e.build_high
+    assert e.build_low / e.build == pytest.approx(f.c_B_low / f.c_B, rel=1e-12)
+
+
+def test_stating_constants_at_a_reference_changes_no_prediction():
+    """Reparametrization: the power model with c at 65,536 triangles predicts what c x^p did
+    (a format-2 file, no x_ref), and a count model stated at the reference counts predicts what
+    the one stated at zero counts does, on counts neither saw."""
+    f = cost.fit(_lawful_records(), ("bvh",), model="power")["bvh"]
+    old = KindFit(f.c_B / cost.X_REF ** f.extra["p_B"], f.c_R / cost.L_REF ** f.extra["p_R"], 0, 0, 0, 0, 1,
+                  extra={k: f.extra[k] for k in ("p_B", "p_R", "a_B", "a_R")})
+    old.c_B_low = old.c_B_high = old.c_B
+    old.c_R_low = old.c_R_high = old.c_R
+    for n in (700, 30000, 2_000_000):
+        a, b = cost.MODELS["power"][1](f, "bvh", n), cost.MODELS["power"][1](old, "bvh", n)
+        assert (a.build, a.per_ray) == pytest.approx((b.build, b.per_ray), rel=1e-12)
+    rng = np.random.default_rng(1)
+    ns, cells, q = rng.integers(500, 10 ** 6, 12), rng.uniform(3, 60, 12), rng.uniform(0.8, 1.2, 12)
+    # laws with noise that no model fits exactly: the grid's in cells, the BVH's in log2 N
+    grid = [(int(n), {"cells": float(c)}, float(3e-7 * (1 + c) ** 0.4 * e)) for n, c, e in zip(ns, cells, q)]
+    bvh = [(int(n), {"cells": float(c)}, float((5e-7 + 1e-7 * math.log2(n)) * e)) for n, c, e in zip(ns, cells, q)]
+    for rows, names, form in ((grid, ("1", "cells"), "log"), (bvh, ("1", "log2n"), "linear")):
+        new, raw = cost.CountFit.fit(rows, names, form=form), cost.CountFit.fit(rows, names, form=form, reference={})
+        assert new.coef[1] > 0
+        assert new.coef != pytest.approx(raw.coef)
+        for n, w in ((800, {"cells": 2.0}), (5_000_000, {"cells": 200.0})):
+            assert new.predict(n, w) == pytest.approx(raw.predict(n, w), rel=1e-12)
+        assert (new.low, new.high) == pytest.approx((raw.low, raw.high), rel=1e-12)
