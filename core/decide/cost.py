@@ -10,9 +10,13 @@ so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
 t ~ c_R log2 N per ray (``model='paper'``).  ``model='affine'`` adds a fixed cost to
 each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative
 residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
-small scenes.  ``model='power'`` (the default) fits T_B ~ c_B (N log2 N)^p_B and
-t ~ c_R (log2 N)^p_R by least squares on log times.  The interval of each constant is
-the spread across the calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
+small scenes.  ``model='power'`` fits T_B ~ c_B (N log2 N / X_REF)^p_B and
+t ~ c_R (log2 N / L_REF)^p_R by least squares on log times.  ``model='terms'`` (the
+default, issue 14) writes the numpy BVH's build as a sum of nonnegative costs in N stated
+at N_REF = 65,536 triangles, a + d (log2 N - 16) + b n + c n (log2 N - 16) with
+n = N / N_REF, which follows its U-shaped build per triangle from 500 to 1M triangles, and
+keeps the power model elsewhere.  The interval of each constant is the spread across the
+calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
 after R* = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise.  ``break_even`` is
@@ -27,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-DEFAULT_MODEL = "power"
+DEFAULT_MODEL = "terms"
 DEFAULT_SPREAD = (10.0, 90.0)
 
 #: the scene size every fitted constant is stated at (issue 14): a constant is a time at
@@ -286,13 +290,17 @@ def build_terms(n: float) -> dict[str, float]:
     return {"1": 1.0, "log2n-16": lg, "n": r, "n(log2n-16)": r * lg}
 
 
-#: the build terms of each structure (``build_terms``), chosen on held-out scenes
-#: (BENCHMARKS.md, issue 14): the numpy BVH's build per triangle is U-shaped in N (a fixed
-#: and a per-level cost over 15-20 us a triangle at 1k, 1.7-2.2 us at 70k-300k, 2.8-3 us
-#: above 600k where its arrays leave the cache), which the rising 'n(log2n-16)' with a
-#: negative N part follows and no power law does; Embree's is flatter
-BUILD_TERMS = {"bvh": ("1", "log2n-16", "n", "n(log2n-16)"), "embree": ("1", "log2n-16", "n", "n(log2n-16)")}
-DEFAULT_BUILD_TERMS = ("1", "log2n-16", "n", "n(log2n-16)")
+#: the build terms of each structure (``build_terms``), chosen by leave-one-out on the
+#: calibration scenes and on held-out meshes (BENCHMARKS.md, issue 14).  The numpy BVH's
+#: build per triangle is U-shaped in N (15-20 us at 1k triangles, a fixed and a per-level
+#: cost; 1.7-2.2 us at 70k-300k; 2.8-3 us above 600k, where its arrays leave the cache):
+#: all four terms follow it (held-out build error 7-8%, against 41% for the power law), and
+#: dropping either 'log2n-16' or 'n(log2n-16)' doubles that.  A structure not named here
+#: keeps the power model's build: Embree's, for which the terms followed the builds closer
+#: (8-9% against 22%) but raised the held-out break-even error from 10-11% to 19-30% over
+#: two calibrations, because the power law's +15-22% on the build offsets the count models'
+#: overestimate of the gain per ray t_G - t_H; a better per-ray model should end that
+BUILD_TERMS = {"bvh": ("1", "log2n-16", "n", "n(log2n-16)")}
 
 
 def _terms_value(names, coef, n: float) -> float:
@@ -301,7 +309,8 @@ def _terms_value(names, coef, n: float) -> float:
 
 
 def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
-    """T_B ~ sum_j b_j term_j(N) over ``BUILD_TERMS[kind]``, b_j >= 0 by least squares on
+    """T_B ~ sum_j b_j term_j(N) over ``BUILD_TERMS[kind]`` (the power model for a kind not
+    named there), b_j >= 0 by least squares on
     relative residuals (``nonneg_relative_lsq``): each b_j is a time in seconds at N_REF
     triangles ('1': the fixed cost; 'log2n-16': the per-level cost added by one doubling of N;
     'n': the per-triangle part of an N_REF-triangle build; 'n(log2n-16)': what one doubling
@@ -310,10 +319,10 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
     per-level term is not measured and could make a build negative.  The time per ray is the
     power model's, c_R (log2 N / L_REF)^p_R.  The interval scales the build by the spread
     of measured / fitted over the scenes."""
-    names = tuple(BUILD_TERMS.get(kind, DEFAULT_BUILD_TERMS))
-    have = [r for r in records if kind in r.kinds and r.kinds[kind].build_time > 0]
     power = _fit_power(records, kind, spread)
-    if len(have) < len(names) + 1:  # too few scenes to weigh the terms: the power model
+    names = BUILD_TERMS.get(kind)
+    have = [r for r in records if kind in r.kinds and r.kinds[kind].build_time > 0]
+    if names is None or len(have) < len(names) + 1:  # not a terms structure, or too few scenes to weigh them
         return power
     ns = [r.triangles for r in have]
     y = np.array([r.kinds[kind].build_time for r in have])
@@ -330,8 +339,10 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
 
 def _estimate_terms(fit: KindFit, kind: str, n: int) -> Estimate:
     """sum_j b_j term_j(max(N, n_min)), the interval as the ratio of c_B's; the power model's
-    per-ray time."""
+    per-ray time (and build, for a structure fitted without terms)."""
     e = fit.extra
+    if "coef_B" not in e:
+        return _estimate_power(fit, kind, n)
     build = _terms_value(e["terms_B"], e["coef_B"], max(int(n), int(e.get("n_min", 1))))
     lo, hi = (fit.c_B_low / fit.c_B, fit.c_B_high / fit.c_B) if fit.c_B > 0 else (1.0, 1.0)
     p = _estimate_power(fit, kind, n)
@@ -339,9 +350,9 @@ def _estimate_terms(fit: KindFit, kind: str, n: int) -> Estimate:
 
 
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
-#: KindFit.extra.  'power' (issue 14) is the default: fitted in log space it has the lowest
-#: held-out build error on the real meshes, with no fixed term that a calibration can drop
-#: (BENCHMARKS.md, issue 14; 'affine' was the default from issue 4).
+#: KindFit.extra.  'terms' (issue 14) is the default: its numpy BVH build has a held-out
+#: error of 7-8% where 'power' had 41% (BENCHMARKS.md, issue 14; 'power' was the default
+#: before it, 'affine' from issue 4).
 MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine),
           "power": (_fit_power, _estimate_power), "terms": (_fit_terms, _estimate_terms)}
 
