@@ -327,10 +327,11 @@ def test_the_break_even_and_the_rule_each_have_one_home():
 # -- the 'terms' build model and the constants' reference sizes (issue 14) ---------------------
 
 def _terms_law(n):
-    """A build that is exactly 40 ms + 5 ms per doubling beyond 65,536 triangles + 120 ms per
-    65,536 triangles + 15 ms per 65,536 triangles and doubling: the 'terms' model's form."""
-    lg = math.log2(n) - 16
-    return 0.04 + 0.005 * lg + 0.12 * n / 65536 + 0.015 * n / 65536 * lg
+    """A build that is exactly 15 ms (a 1,024-triangle scene's fixed cost) + 4 ms per doubling
+    beyond it + 120 ms per 65,536 triangles + 15 ms per 65,536 triangles and doubling beyond
+    65,536: the 'terms' model's form."""
+    lg = math.log2(n)
+    return 0.015 + 0.004 * (lg - 10) + 0.12 * n / 65536 + 0.015 * n / 65536 * (lg - 16)
 
 
 def _terms_records(ns=(500, 2000, 8000, 30000, 120000, 500000, 1000000)):
@@ -339,30 +340,30 @@ def _terms_records(ns=(500, 2000, 8000, 30000, 120000, 500000, 1000000)):
 
 
 def test_terms_model_recovers_exact_constants_and_estimates_the_formula():
-    """On builds that follow a + d (log2 N - 16) + b N/65,536 + c (N/65,536)(log2 N - 16) exactly,
-    the fit returns (a, d, b, c), c_B is the build at 65,536 triangles (a + b), and the estimate
-    for any N at or above the smallest scene is the formula."""
+    """On builds that follow a + d (log2 N - 10) + b N/65,536 + c (N/65,536)(log2 N - 16) exactly,
+    the fit returns (a, d, b, c), c_B is the build at 65,536 triangles (a + 6 d + b), and the
+    estimate for any N at or above the smallest scene is the formula."""
     f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
-    assert f.extra["terms_B"] == ["1", "log2n-16", "n", "n(log2n-16)"]
-    assert f.extra["coef_B"] == pytest.approx([0.04, 0.005, 0.12, 0.015], rel=1e-9)
-    assert f.c_B == pytest.approx(0.16, rel=1e-9) and f.extra["n_min"] == 500
-    assert (f.c_B_low, f.c_B_high) == pytest.approx((0.16, 0.16), rel=1e-9)  # no scatter: no interval
+    assert f.extra["terms_B"] == ["1", "log2n-10", "n", "n(log2n-16)"]
+    assert f.extra["coef_B"] == pytest.approx([0.015, 0.004, 0.12, 0.015], rel=1e-9)
+    assert f.c_B == pytest.approx(0.159, rel=1e-9) and f.extra["n_min"] == 500
+    assert (f.c_B_low, f.c_B_high) == pytest.approx((0.159, 0.159), rel=1e-9)  # no scatter: no interval
     est = cost.MODELS["terms"][1]
     for n in (500, 12345, 65536, 3_000_000):
         assert est(f, "bvh", n).build == pytest.approx(_terms_law(n), rel=1e-9)
-    # 65,536 triangles by hand: log2 N - 16 = 0, N / 65,536 = 1
-    assert est(f, "bvh", 65536).build == pytest.approx(0.04 + 0.12, rel=1e-12)
+    # 65,536 triangles by hand: log2 N - 10 = 6, N / 65,536 = 1, log2 N - 16 = 0
+    assert est(f, "bvh", 65536).build == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
     # per ray: the power model's, stated at log2 N = 16
     assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
     assert est(f, "bvh", 1 << 12).per_ray == pytest.approx(1e-7 * 12 ** 0.8, rel=1e-9)
     assert cost.fit_constants(f, "terms") == pytest.approx(
-        {"build 1": 0.04, "build log2n-16": 0.005, "build n": 0.12, "build n(log2n-16)": 0.015,
-         "build at N_REF": 0.16, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
+        {"build 1": 0.015, "build log2n-10": 0.004, "build n": 0.12, "build n(log2n-16)": 0.015,
+         "build at N_REF": 0.159, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
 
 
 def test_terms_model_estimates_a_scene_below_the_calibration_as_the_smallest_scene():
     """Below the smallest calibration scene the per-level term is not measured (here it would
-    make a 2-triangle build 40 - 5 x 15 = -35 ms): such a scene costs the smallest scene's build."""
+    make a 2-triangle build 15 - 4 x 9 = -21 ms): such a scene costs the smallest scene's build."""
     f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
     assert _terms_law(2) < 0
     assert cost.MODELS["terms"][1](f, "bvh", 2).build == pytest.approx(_terms_law(500), rel=1e-9)
