@@ -369,9 +369,13 @@ def test_terms_model_estimates_a_scene_below_the_calibration_as_the_smallest_sce
     assert cost.MODELS["terms"][1](f, "bvh", 2).build == pytest.approx(_terms_law(500), rel=1e-9)
 
 
-def test_terms_model_with_too_few_scenes_is_the_power_model():
-    recs = _terms_records((1000, 30000, 1000000))
-    assert cost.fit(recs, ("bvh",), model="terms")["bvh"] == cost.fit(recs, ("bvh",), model="power")["bvh"]
+def test_terms_model_with_too_few_scenes_or_sizes_is_the_power_model():
+    """Four terms need five scenes, and sizes from the fixed-cost regime to the large one (a
+    ratio of TERMS_MIN_RATIO = 100): 'quick' (1k-60k) and 'tiny' (500-1k) get the power model."""
+    for ns in ((1000, 30000, 1000000), (1000, 2000, 8000, 30000, 60000), (500, 600, 700, 850, 1000)):
+        recs = _terms_records(ns)
+        assert cost.fit(recs, ("bvh",), model="terms")["bvh"] == cost.fit(recs, ("bvh",), model="power")["bvh"], ns
+    assert "coef_B" in cost.fit(_terms_records((500, 2000, 8000, 30000, 50000)), ("bvh",), model="terms")["bvh"].extra
 
 
 def test_terms_model_spread_brackets_measured_over_fitted():

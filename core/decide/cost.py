@@ -308,6 +308,13 @@ def build_terms(n: float) -> dict[str, float]:
 BUILD_TERMS = {"bvh": ("1", "log2n-10", "n", "n(log2n-16)")}
 
 
+#: the spread of N the terms need (the largest calibration scene over the smallest): the
+#: fixed cost shows below ~5k triangles and the per-triangle cost's growth above ~100k, so
+#: a set that does not reach both ('tiny': 500-1k, 'quick': 1k-60k) gets the power model,
+#: which extrapolates more gently
+TERMS_MIN_RATIO = 100.0
+
+
 def _terms_value(names, coef, n: float) -> float:
     t = build_terms(n)
     return float(sum(c * t[k] for k, c in zip(names, coef)))
@@ -323,13 +330,14 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
     than the smallest calibration scene (n_min) are estimated as that scene: below it the
     per-level term is not measured and could make a build negative.  The time per ray is the
     power model's, c_R (log2 N / L_REF)^p_R.  The interval scales the build by the spread
-    of measured / fitted over the scenes."""
+    of measured / fitted over the scenes.  With fewer scenes than terms + 1, or sizes spanning
+    less than TERMS_MIN_RATIO, it is the power model."""
     power = _fit_power(records, kind, spread)
     names = BUILD_TERMS.get(kind)
     have = [r for r in records if kind in r.kinds and r.kinds[kind].build_time > 0]
-    if names is None or len(have) < len(names) + 1:  # not a terms structure, or too few scenes to weigh them
-        return power
     ns = [r.triangles for r in have]
+    if names is None or len(have) < len(names) + 1 or not _spans(ns, TERMS_MIN_RATIO):
+        return power  # not a terms structure, or too few scenes or sizes to weigh its terms
     y = np.array([r.kinds[kind].build_time for r in have])
     x = np.array([[build_terms(n)[k] for k in names] for n in ns])
     b = nonneg_relative_lsq(x, y)
