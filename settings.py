@@ -36,6 +36,7 @@ from bpy.props import (
 )
 
 from .budget import ray_budget, render_samples
+from .core.plan import DEFAULT_SAMPLES
 
 #: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
 BREAK_EVEN_NEVER = 3.4028234663852886e38
@@ -180,7 +181,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     sample_rays: IntProperty(
         name="Sample Rays",
         description="Representative rays traced through the grid to measure its time per ray (K in the paper)",
-        default=16384, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
+        default=DEFAULT_SAMPLES, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
     )
     grid_density: FloatProperty(
         name="Grid Density",
@@ -260,7 +261,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         "came from the sample's time instead of its work counts)", min=0.0, precision=1)
     grid_refs_per_ray: FloatProperty(
         name="References per Ray", description="Triangle references in those cells, on average (0 when the estimate "
-        "came from the sample's time)", min=0.0, precision=1)
+        "came from the sample's time or no count model weighs references, so they were not counted)", min=0.0, precision=1)
     samples_traced: IntProperty(name="Samples Traced", description="Sample rays the grid's time per ray comes from", min=0)
     grid_sample_ratio: FloatProperty(
         name="Batch Ratio", description="Calibrated ratio of the grid's time per ray on a large workload to its time "

@@ -138,6 +138,9 @@ def test_grid_work_counts_cells_and_references_on_a_hand_grid():
     assert (w.cells, w.refs, w.hit) == (2.0, 2 * 21 / 16, 1.0)
     both = grid_work(g, o, d, np.array([np.inf, 2.5]))
     assert (both.cells, both.refs, both.hit) == (3.0, (6 + 2 * 21 / 16) / 2, 0.5)
+    # refs=False skips the reference count and changes nothing else
+    lean = grid_work(g, o, d, np.array([np.inf, 2.5]), refs=False)
+    assert (lean.cells, lean.refs, lean.hit, lean.length) == (both.cells, None, both.hit, both.length)
 
 
 def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
@@ -281,6 +284,20 @@ def test_a_plan_with_a_count_model_repeats_exactly_and_uses_the_counts():
     assert plans[0].candidates["bvh"].per_ray == pytest.approx(2e-7 + 1e-7 * math.log2(mesh.triangle_count), rel=1e-12)
     assert len({p.break_even for p in plans}) == 1 and len({p.grid_per_ray for p in plans}) == 1
     assert plans[0].to_dict()["work"] == w
+
+
+def test_a_plan_counts_references_only_when_a_count_model_weighs_them():
+    from hybrid_raycast.core import plan, scenes as S
+
+    mesh = S.torus(3000)
+    cells_only = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                             counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+    p = plan(mesh, 1e6, cells_only, samples=2000, seed=3)
+    assert p.work["refs"] is None and p.work["cells"] > 0
+    assert p.grid_per_ray == pytest.approx(1e-7 + 3e-8 * p.work["cells"], rel=1e-12)
+    # a model that weighs references but is handed counts without them says so by name
+    with pytest.raises(ValueError, match="refs"):
+        cost.CountFit(("1", "refs"), (1e-7, 3e-8), 0.8, 1.25, 5).predict(3000, p.work)
 
 
 def test_count_model_survives_save_and_load(tmp_path):

@@ -153,6 +153,10 @@ class Calibration:
         lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
         return med, lo, hi
 
+    def uses_term(self, name: str) -> bool:
+        """Whether any count model weighs the work count ``name`` (e.g. 'refs')."""
+        return any(name in f.terms for f in self.counts.values())
+
     def count_per_ray(self, kind: str, n: int, work: dict):
         """(point, low, high) time per ray of ``kind`` ('grid' or a structure) on an
         N-triangle scene whose grid sample counted ``work``; None without a count model."""

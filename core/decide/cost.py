@@ -422,8 +422,14 @@ def terms(triangles: int, work: dict) -> dict[str, float]:
     """The named quantities a count model may weigh, for one scene: its size and the grid
     sample's per-ray means (``work.Work``)."""
     lg = log2n(triangles)
-    w = {k: float(work.get(k, 0.0)) for k in ("cells", "refs", "hit", "length")}
-    return {"1": 1.0, "log2n": lg, **w, "hit_log2n": w["hit"] * lg, "length_log2n": w["length"] * lg}
+    # a count the sample did not take (refs when no model weighs them) is absent, so a
+    # model that needs it fails by name instead of reading a zero
+    w = {k: float(v) for k in ("cells", "refs", "hit", "length") if (v := work.get(k)) is not None}
+    out = {"1": 1.0, "log2n": lg, **w}
+    for k in ("hit", "length"):
+        if k in w:
+            out[f"{k}_log2n"] = w[k] * lg
+    return out
 
 
 def nonneg_relative_lsq(x, y) -> np.ndarray:
@@ -486,6 +492,9 @@ class CountFit:
 
     def predict(self, triangles: int, work: dict) -> float:
         t = terms(triangles, work)
+        missing = [k for k in self.terms if k not in t]
+        if missing:
+            raise ValueError(f"the grid sample's work counts lack {', '.join(missing)}, which this count model weighs")
         refs = self._refs()
         if self.form == "log":
             x = np.array([[t[k] for k in self.terms]], np.float64)
