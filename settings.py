@@ -36,6 +36,7 @@ from bpy.props import (
 )
 
 from .budget import ray_budget, render_samples
+from .core.plan import DEFAULT_SAMPLES
 
 #: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
 BREAK_EVEN_NEVER = 3.4028234663852886e38
@@ -180,7 +181,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     sample_rays: IntProperty(
         name="Sample Rays",
         description="Representative rays traced through the grid to measure its time per ray (K in the paper)",
-        default=16384, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
+        default=DEFAULT_SAMPLES, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
     )
     grid_density: FloatProperty(
         name="Grid Density",
@@ -260,20 +261,20 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         "came from the sample's time instead of its work counts)", min=0.0, precision=1)
     grid_refs_per_ray: FloatProperty(
         name="References per Ray", description="Triangle references in those cells, on average (0 when the estimate "
-        "came from the sample's time)", min=0.0, precision=1)
+        "came from the sample's time or no count model weighs references, so they were not counted)", min=0.0, precision=1)
     samples_traced: IntProperty(name="Samples Traced", description="Sample rays the grid's time per ray comes from", min=0)
     grid_sample_ratio: FloatProperty(
         name="Batch Ratio", description="Calibrated ratio of the grid's time per ray on a large workload to its time "
         "per ray on this many sample rays (a small batch pays the traversal's fixed costs over few rays)",
         min=0.0, soft_max=2.0, precision=3, default=1.0)
     bvh_considered: BoolProperty(name="BVH Considered", description="The BVH was a candidate with calibration constants")
-    bvh_build_time: _time("BVH Build (est.)", "Estimated BVH build time, a_B + c_B N log2 N (affine model)")
-    bvh_per_ray: _time("BVH per Ray (est.)", "Estimated BVH time per ray, a_R + c_R log2 N (affine model)")
+    bvh_build_time: _time("BVH Build (est.)", "Estimated BVH build time, from the calibration's build model for N triangles")
+    bvh_per_ray: _time("BVH per Ray (est.)", "Estimated BVH time per ray, from the calibration's model (the grid sample's counts, or N)")
     embree_considered: BoolProperty(name="Embree Considered", description="Embree was a candidate, importable, with calibration constants")
     embree_available: BoolProperty(name="Embree Available", description="embreex could be imported at the analysis")
     embree_unavailable: StringProperty(name="Embree Unavailable", description="Why Embree could not be used at the analysis (empty when it could)")
-    embree_build_time: _time("Embree Build (est.)", "Estimated Embree build time, a_B + c_B N log2 N (affine model)")
-    embree_per_ray: _time("Embree per Ray (est.)", "Estimated Embree time per ray, a_R + c_R log2 N (affine model)")
+    embree_build_time: _time("Embree Build (est.)", "Estimated Embree build time, from the calibration's build model for N triangles")
+    embree_per_ray: _time("Embree per Ray (est.)", "Estimated Embree time per ray, from the calibration's model (the grid sample's counts, or N)")
     analyzed_at: StringProperty(name="Analyzed At", description="When the analysis ran (local time, ISO 8601)")
     analysis_duration: _time("Analysis Time", "Wall time of the whole analysis (extraction, grid, samples, plan)")
     calibration_source: StringProperty(name="Calibration", description="Where the calibration constants came from")

@@ -50,12 +50,14 @@ from .decide.work import grid_work
 from .hits import Hits
 from .mesh import TriangleMesh
 
-#: default number of sample rays traced through the grid.  Full runs of the report
-#: (docs/report/report.md, BENCHMARKS.md) with K = 8,192, 16,384 (three runs) and 65,536
-#: gave median break-even errors of 55%, 33-45% and 32% and estimate costs (separate
-#: samples, at 1e6 rays) of 2.2%, 2.5-3.2% and 8.9%: 16,384 is the cheapest K at the
-#: accuracy floor that this machine's timing noise sets (R_C's own repeatability 14-32%).
-DEFAULT_SAMPLES = 16384
+#: default number of sample rays traced through the grid.  The estimate reads the
+#: sample's work counts, not its time: a mean over K rays whose relative standard error is
+#: about 1/sqrt(K) (1.1% at 8,192).  The report's sweep (six held-out scenes, density 1)
+#: gave median break-even errors of 11.3%, 12.8% and 14.0% at K = 4,096, 8,192 and
+#: 16,384; the estimate's cost at 1e6 rays (bunny, beetle-alt, cow; locked run
+#: 2026-12-01 22:34) 1.6-2.8%, 2.4-3.7% and 3.8-6.1%.  8,192 keeps the cost under the
+#: issue's 5% with a margin for repeatability on small scenes.
+DEFAULT_SAMPLES = 8192
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
 
@@ -464,7 +466,7 @@ def plan(
     if k and calibration.counts.get("grid") is not None:
         # counts instead of the sample's time: the same rays through the same grid give the
         # same counts, so the estimate repeats exactly with a fixed calibration
-        work = grid_work(grid, o, d, sample.t, tmin, tmax).to_dict()
+        work = grid_work(grid, o, d, sample.t, tmin, tmax, refs=calibration.uses_term("refs")).to_dict()
         g, g_lo, g_hi = calibration.count_per_ray("grid", mesh.triangle_count, work)
         per_ray = {kk: e for kk in kinds if kk != "grid"
                    if (e := calibration.count_per_ray(kk, mesh.triangle_count, work)) is not None}
@@ -476,8 +478,9 @@ def plan(
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work
     if work is not None:
-        p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells, "
-                       f"{work['refs']:.1f} references per ray; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
+        refs = "" if work["refs"] is None else f", {work['refs']:.1f} references"
+        p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells"
+                       f"{refs} per ray; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
     elif k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
                        f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")

@@ -132,7 +132,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
     p.add_argument("--calibration", help="the calibration file to read and write")
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="default",
-                   help="calibrate: how much to measure (default: the full set the shipped calibration uses, about 3 minutes)")
+                   help="calibrate: how much to measure (default: the full set the shipped calibration uses, about 5 minutes)")
     p.add_argument("--sensor", help="scan: the object to scan from (its hybrid_raycast_sensor settings)")
     p.add_argument("--format", choices=("ply", "las", "npz"), help="scan: file format (default: the sensor's)")
     p.add_argument("--space", choices=("world", "sensor"), help="scan: coordinates of the points (default: the sensor's)")

@@ -58,8 +58,8 @@ from hybrid_raycast.core import build, load_obj, scenes as scene_lib  # noqa: E4
 from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import cost as calib  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
-    MODELS, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate, fit, load, measure_break_even,
-    time_trace, warm_up,
+    CALIBRATION_FORMAT, MODELS, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate, fit, load,
+    measure_break_even, time_trace, warm_up,
 )
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
@@ -808,10 +808,13 @@ def get_calibration(args):
                         model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_repeats(args))
         cal.save(path)
         how = f"measured for this report in {cal.duration_s:.0f} s"
-    if cal.model != calib.DEFAULT_MODEL:
-        log(f"calibration fitted with '{cal.model}': refitting with the default model '{calib.DEFAULT_MODEL}'")
+    if cal.model != calib.DEFAULT_MODEL or cal.version.get("format") != CALIBRATION_FORMAT:
+        # an older file's constants are stated as it stated them: refit (the records are kept)
+        log(f"calibration fitted with '{cal.model}' (format {cal.version.get('format')}): refitting with the default "
+            f"model '{calib.DEFAULT_MODEL}'")
+        counts = calib.fit_counts(cal.scenes, ("grid",) + tuple(cal.fits), cal.spread) if cal.counts else {}
         cal = dataclasses.replace(cal, fits=fit(cal.scenes, tuple(cal.fits), model=calib.DEFAULT_MODEL, spread=cal.spread),
-                                  model=calib.DEFAULT_MODEL)
+                                  model=calib.DEFAULT_MODEL, counts=counts)
         how += f", refitted with '{cal.model}'"
     if not any(r.grid_samples for r in cal.scenes):
         log("warning: the calibration holds no grid samples: the plan's grid estimate is uncorrected (ratio 1)")
@@ -831,8 +834,10 @@ def cal_repeats(args) -> dict:
 
 def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> dict:
     """How two calibrations in a row differ: each constant's relative difference
-    |a - b| / mean, and (what a plan uses) the per-ray times they predict on the evaluated
-    scenes' own work counts and the break-evens they give."""
+    |a - b| / mean (the constants as the model states them, ``cost.fit_constants`` and
+    ``CountFit.constants``: times at a reference size, slopes, exponents), and (what a plan
+    uses) the per-ray times they predict on the evaluated scenes' own work counts and the
+    break-evens they give."""
     def rel(a, b):
         m = (abs(a) + abs(b)) / 2
         return 100.0 * abs(a - b) / m if m > 0 else 0.0
@@ -840,17 +845,14 @@ def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> di
     consts = {}
     for k, f in cal.fits.items():
         g = cal2.fits.get(k)
-        if g is not None:
-            consts[f"{k} c_B"] = rel(f.c_B, g.c_B)
-            consts[f"{k} c_R"] = rel(f.c_R, g.c_R)
-            for name in ("a_B", "a_R", "p_B", "p_R"):
-                if name in f.extra and name in g.extra:
-                    consts[f"{k} {name}"] = rel(f.extra[name], g.extra[name])
+        if g is not None and cal2.model == cal.model:
+            ca, cb = calib.fit_constants(f, cal.model), calib.fit_constants(g, cal.model)
+            consts.update({f"{k} {name}": rel(v, cb[name]) for name, v in ca.items() if name in cb})
     for k, f in cal.counts.items():
         g = cal2.counts.get(k)
-        if g is not None and g.terms == f.terms:
-            for t, a, b in zip(f.terms, f.coef, g.coef):
-                consts[f"{k} ns x {t}"] = rel(a, b)
+        if g is not None and g.terms == f.terms and g.form == f.form and g.refs == f.refs:
+            cb = g.constants()
+            consts.update({f"{k} per ray {name}": rel(v, cb[name]) for name, v in f.constants().items()})
     preds, bes = {}, []
     for s in scenes:
         w = s.extra.get("work")

@@ -372,3 +372,37 @@ def test_small_scales_still_time_the_grid_on_a_large_workload_for_the_ratio():
         assert r.kinds["grid"].rays >= M.GRID_LARGE_RAYS and r.kinds["bvh"].rays == 2000
     med, lo, hi = cal.grid_sample_ratio(16384)
     assert 0 < lo <= med <= hi and med < 1.5, (med, lo, hi)
+
+
+def test_a_format_2_file_loads_with_its_constants_meaning_what_they_meant(tmp_path):
+    """Format 2 stated the power model's c as the factor of x^p and a count model's constant at
+    zero counts; such a file (no x_ref_B / x_ref_R, no refs) still loads here and estimates
+    c (N log2 N)^p and a + b log2 N, as it did."""
+    from hybrid_raycast.core.decide.cost import CountFit
+
+    def to_format_2(d):
+        d["version"]["format"] = 2
+        d["model"] = "power"
+        d["fits"]["bvh"].update(c_B=2e-8, c_B_low=1e-8, c_B_high=3e-8, extra={"p_B": 1.1, "p_R": 0.8, "a_B": 0.0, "a_R": 0.0})
+        d["counts"] = {"bvh": {"terms": ["1", "log2n"], "coef": [2e-7, 1e-7], "low": 0.9, "high": 1.1, "scenes": 5,
+                               "form": "linear"}}
+
+    cal = load(_edit(tmp_path, to_format_2))
+    assert cal.estimate("bvh", 1 << 16).build == pytest.approx(2e-8 * 1048576 ** 1.1, rel=1e-12)
+    assert cal.estimate("bvh", 1 << 16).per_ray == pytest.approx(3e-7 * 16 ** 0.8, rel=1e-12)
+    assert cal.counts["bvh"] == CountFit(("1", "log2n"), (2e-7, 1e-7), 0.9, 1.1, 5, "linear", ())
+    assert cal.count_per_ray("bvh", 1 << 12, {"cells": 1.0})[0] == pytest.approx(2e-7 + 12e-7, rel=1e-12)
+    assert "c_B 20.00 ns [10.00, 30.00] x (N log2 N)^1.100" in cal.describe()
+
+
+def test_a_terms_calibration_round_trips_and_describes_its_constants(tmp_path):
+    recs = [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(0.04 + 0.12 * n / 65536 * (1 + 0.1 * math.log2(n / 500)),
+                                                                1000 * 1e-7 * math.log2(n), 1000)})
+            for n in (500, 2000, 8000, 30000, 120000, 500000, 1000000)]
+    cal = Calibration(fit(recs, ("bvh",), model="terms"), scenes=recs, model="terms", source="hand")
+    back = load(cal.save(tmp_path / "t.json"))
+    assert back.to_dict() == cal.to_dict() and back.version["format"] == CALIBRATION_FORMAT == 3
+    for n in (100, 700, 65536, 2_000_000):
+        assert back.estimate("bvh", n) == cal.estimate("bvh", n)
+    text = back.describe()
+    assert "terms model" in text and "(n = N / 65,536, N >= 500)" in text and "ms at N = 65,536" in text, text

@@ -138,15 +138,24 @@ def test_grid_work_counts_cells_and_references_on_a_hand_grid():
     assert (w.cells, w.refs, w.hit) == (2.0, 2 * 21 / 16, 1.0)
     both = grid_work(g, o, d, np.array([np.inf, 2.5]))
     assert (both.cells, both.refs, both.hit) == (3.0, (6 + 2 * 21 / 16) / 2, 0.5)
+    # refs=False skips the reference count and changes nothing else
+    lean = grid_work(g, o, d, np.array([np.inf, 2.5]), refs=False)
+    assert (lean.cells, lean.refs, lean.hit, lean.length) == (both.cells, None, both.hit, both.length)
 
 
 def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, 1e-7 + 2e-8 * c + 5e-9 * f)
             for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
     f = cost.CountFit.fit(rows, ("1", "cells", "refs"))
-    assert f.coef == pytest.approx((1e-7, 2e-8, 5e-9), rel=1e-9)
+    # stated at the reference (15 cells, 0 refs): the '1' constant is the time per ray there
+    assert f.refs == (0.0, 15.0, 0.0)
+    assert f.coef == pytest.approx((1e-7 + 2e-8 * 15, 2e-8, 5e-9), rel=1e-9)
+    assert f.constants() == pytest.approx({"at ref": 4e-7, "x cells": 2e-8, "x refs": 5e-9}, rel=1e-9)
     assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
     assert f.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
+    raw = cost.CountFit.fit(rows, ("1", "cells", "refs"), reference={})  # format 2: stated at zero counts
+    assert raw.refs == () and raw.coef == pytest.approx((1e-7, 2e-8, 5e-9), rel=1e-9)
+    assert raw.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
     t = cost.terms(1 << 10, {"cells": 3, "refs": 4, "hit": 0.25, "length": 0.5})
     assert (t["log2n"], t["hit_log2n"], t["length_log2n"]) == (10.0, 2.5, 5.0)
 
@@ -159,10 +168,14 @@ def test_log_count_fit_recovers_an_exact_power_law_and_predicts_it():
             for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
     f = cost.CountFit.fit(rows, ("1", "cells", "refs"), form="log")
     assert f.form == "log"
-    assert f.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
+    # the scale is the time per ray at the reference, 15 cells (1 + cells = 16) and 0 refs
+    assert f.coef == pytest.approx((math.log(3e-7 * 16 ** 0.6), 0.6, 0.25), rel=1e-9)
     assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
     assert f.predict(1 << 20, {"cells": 99, "refs": 15}) == pytest.approx(3e-7 * 100 ** 0.6 * 16 ** 0.25, rel=1e-9)
-    assert f.formula() == "300.00 ns x (1 + cells)^0.600 x (1 + refs)^0.250"
+    assert f.formula() == f"{3e-7 * 16 ** 0.6 * 1e9:.2f} ns x ((1 + cells) / 16)^0.600 x (1 + refs)^0.250"
+    raw = cost.CountFit.fit(rows, ("1", "cells", "refs"), form="log", reference={})
+    assert raw.coef == pytest.approx((math.log(3e-7), 0.6, 0.25), rel=1e-9)
+    assert raw.formula() == "300.00 ns x (1 + cells)^0.600 x (1 + refs)^0.250"
     with pytest.raises(ValueError, match="form"):
         cost.CountFit.fit(rows, ("1", "cells"), form="cubic")
     with pytest.raises(ValueError, match="'1'"):
@@ -184,7 +197,10 @@ def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
                                                                    1000 * 1e-7 * n ** 0.8, 1000)})
             for n in (8, 11, 14, 17, 20)]
     f = cost.fit(recs, ("bvh",), model="power")["bvh"]
-    assert (f.c_B, f.extra["p_B"], f.c_R, f.extra["p_R"]) == pytest.approx((2e-8, 1.1, 1e-7, 0.8), rel=1e-9)
+    # c_B, c_R: the build and the time per ray of a 65,536-triangle scene (N log2 N = 2^20, log2 N = 16)
+    assert (f.c_B, f.extra["p_B"], f.c_R, f.extra["p_R"]) == pytest.approx((2e-8 * 2.0 ** 22, 1.1, 1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
+    assert cost.fit_constants(f, "power") == pytest.approx(
+        {"build at N_REF": 2e-8 * 2.0 ** 22, "p_B": 1.1, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
     e = cost.MODELS["power"][1](f, "bvh", 1 << 16)  # N log2 N = 1,048,576, log2 N = 16
     assert (e.build, e.per_ray) == pytest.approx((2e-8 * 1048576 ** 1.1, 1e-7 * 16 ** 0.8), rel=1e-9)
     assert e.build_low <= e.build <= e.build_high
@@ -196,7 +212,7 @@ def test_power_model_on_close_sizes_is_the_affine_fit():
     recs = [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(1e-3 + 2e-8 * cost.nlog2n(n), 1000 * 1e-7 * math.log2(n) ** 0.8, 1000)})
             for n in (500, 600, 700, 850, 1000)]
     f = cost.fit(recs, ("bvh",), model="power")["bvh"]
-    assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8, 1.0), rel=1e-6)
+    assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8 * 2.0 ** 20, 1.0), rel=1e-6)
     e = cost.MODELS["power"][1](f, "bvh", 20000)
     assert e.build == pytest.approx(1e-3 + 2e-8 * cost.nlog2n(20000), rel=1e-6)
 
@@ -270,6 +286,20 @@ def test_a_plan_with_a_count_model_repeats_exactly_and_uses_the_counts():
     assert plans[0].to_dict()["work"] == w
 
 
+def test_a_plan_counts_references_only_when_a_count_model_weighs_them():
+    from hybrid_raycast.core import plan, scenes as S
+
+    mesh = S.torus(3000)
+    cells_only = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                             counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+    p = plan(mesh, 1e6, cells_only, samples=2000, seed=3)
+    assert p.work["refs"] is None and p.work["cells"] > 0
+    assert p.grid_per_ray == pytest.approx(1e-7 + 3e-8 * p.work["cells"], rel=1e-12)
+    # a model that weighs references but is handed counts without them says so by name
+    with pytest.raises(ValueError, match="refs"):
+        cost.CountFit(("1", "refs"), (1e-7, 3e-8), 0.8, 1.25, 5).predict(3000, p.work)
+
+
 def test_count_model_survives_save_and_load(tmp_path):
     from hybrid_raycast.core.decide import load
 
@@ -309,3 +339,95 @@ def test_the_break_even_and_the_rule_each_have_one_home():
     assert homes == {"break_even": ["core/decide/cost.py"], "choose": ["core/decide/rule.py"]}, homes
     for alias in ("calibration", "report"):
         assert importlib.util.find_spec(f"{cost.__package__.rsplit('.', 1)[0]}.{alias}") is None, alias
+
+
+# -- the 'terms' build model and the constants' reference sizes (issue 14) ---------------------
+
+def _terms_law(n):
+    """A build that is exactly 15 ms (a 1,024-triangle scene's fixed cost) + 4 ms per doubling
+    beyond it + 120 ms per 65,536 triangles + 15 ms per 65,536 triangles and doubling beyond
+    65,536: the 'terms' model's form."""
+    lg = math.log2(n)
+    return 0.015 + 0.004 * (lg - 10) + 0.12 * n / 65536 + 0.015 * n / 65536 * (lg - 16)
+
+
+def _terms_records(ns=(500, 2000, 8000, 30000, 120000, 500000, 1000000)):
+    return [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(_terms_law(n), 1000 * 1e-7 * math.log2(n) ** 0.8, 1000)})
+            for n in ns]
+
+
+def test_terms_model_recovers_exact_constants_and_estimates_the_formula():
+    """On builds that follow a + d (log2 N - 10) + b N/65,536 + c (N/65,536)(log2 N - 16) exactly,
+    the fit returns (a, d, b, c), c_B is the build at 65,536 triangles (a + 6 d + b), and the
+    estimate for any N at or above the smallest scene is the formula."""
+    f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
+    assert f.extra["terms_B"] == ["1", "log2n-10", "n", "n(log2n-16)"]
+    assert f.extra["coef_B"] == pytest.approx([0.015, 0.004, 0.12, 0.015], rel=1e-9)
+    assert f.c_B == pytest.approx(0.159, rel=1e-9) and f.extra["n_min"] == 500
+    assert (f.c_B_low, f.c_B_high) == pytest.approx((0.159, 0.159), rel=1e-9)  # no scatter: no interval
+    est = cost.MODELS["terms"][1]
+    for n in (500, 12345, 65536, 3_000_000):
+        assert est(f, "bvh", n).build == pytest.approx(_terms_law(n), rel=1e-9)
+    # 65,536 triangles by hand: log2 N - 10 = 6, N / 65,536 = 1, log2 N - 16 = 0
+    assert est(f, "bvh", 65536).build == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
+    # per ray: the power model's, stated at log2 N = 16
+    assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
+    assert est(f, "bvh", 1 << 12).per_ray == pytest.approx(1e-7 * 12 ** 0.8, rel=1e-9)
+    assert cost.fit_constants(f, "terms") == pytest.approx(
+        {"build 1": 0.015, "build log2n-10": 0.004, "build n": 0.12, "build n(log2n-16)": 0.015,
+         "build at N_REF": 0.159, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
+
+
+def test_terms_model_estimates_a_scene_below_the_calibration_as_the_smallest_scene():
+    """Below the smallest calibration scene the per-level term is not measured (here it would
+    make a 2-triangle build 15 - 4 x 9 = -21 ms): such a scene costs the smallest scene's build."""
+    f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
+    assert _terms_law(2) < 0
+    assert cost.MODELS["terms"][1](f, "bvh", 2).build == pytest.approx(_terms_law(500), rel=1e-9)
+
+
+def test_terms_model_with_too_few_scenes_or_sizes_is_the_power_model():
+    """Four terms need five scenes, and sizes from the fixed-cost regime to the large one (a
+    ratio of TERMS_MIN_RATIO = 100): 'quick' (1k-60k) and 'tiny' (500-1k) get the power model."""
+    for ns in ((1000, 30000, 1000000), (1000, 2000, 8000, 30000, 60000), (500, 600, 700, 850, 1000)):
+        recs = _terms_records(ns)
+        assert cost.fit(recs, ("bvh",), model="terms")["bvh"] == cost.fit(recs, ("bvh",), model="power")["bvh"], ns
+    assert "coef_B" in cost.fit(_terms_records((500, 2000, 8000, 30000, 50000)), ("bvh",), model="terms")["bvh"].extra
+
+
+def test_terms_model_spread_brackets_measured_over_fitted():
+    """The interval is the 10th/90th percentile of measured / fitted over the scenes, applied to
+    every N as a ratio of the build."""
+    recs = _terms_records()
+    for r, q in zip(recs, (1.3, 0.8, 1.0, 1.0, 1.0, 1.0, 1.0)):
+        r.kinds["bvh"].build_time *= q
+    f = cost.fit(recs, ("bvh",), model="terms")["bvh"]
+    e = cost.MODELS["terms"][1](f, "bvh", 200000)
+    assert e.build_low < e.build < e.build_high
+    assert e.build_low / e.build == pytest.approx(f.c_B_low / f.c_B, rel=1e-12)
+
+
+def test_stating_constants_at_a_reference_changes_no_prediction():
+    """Reparametrization: the power model with c at 65,536 triangles predicts what c x^p did
+    (a format-2 file, no x_ref), and a count model stated at the reference counts predicts what
+    the one stated at zero counts does, on counts neither saw."""
+    f = cost.fit(_lawful_records(), ("bvh",), model="power")["bvh"]
+    old = KindFit(f.c_B / cost.X_REF ** f.extra["p_B"], f.c_R / cost.L_REF ** f.extra["p_R"], 0, 0, 0, 0, 1,
+                  extra={k: f.extra[k] for k in ("p_B", "p_R", "a_B", "a_R")})
+    old.c_B_low = old.c_B_high = old.c_B
+    old.c_R_low = old.c_R_high = old.c_R
+    for n in (700, 30000, 2_000_000):
+        a, b = cost.MODELS["power"][1](f, "bvh", n), cost.MODELS["power"][1](old, "bvh", n)
+        assert (a.build, a.per_ray) == pytest.approx((b.build, b.per_ray), rel=1e-12)
+    rng = np.random.default_rng(1)
+    ns, cells, q = rng.integers(500, 10 ** 6, 12), rng.uniform(3, 60, 12), rng.uniform(0.8, 1.2, 12)
+    # laws with noise that no model fits exactly: the grid's in cells, the BVH's in log2 N
+    grid = [(int(n), {"cells": float(c)}, float(3e-7 * (1 + c) ** 0.4 * e)) for n, c, e in zip(ns, cells, q)]
+    bvh = [(int(n), {"cells": float(c)}, float((5e-7 + 1e-7 * math.log2(n)) * e)) for n, c, e in zip(ns, cells, q)]
+    for rows, names, form in ((grid, ("1", "cells"), "log"), (bvh, ("1", "log2n"), "linear")):
+        new, raw = cost.CountFit.fit(rows, names, form=form), cost.CountFit.fit(rows, names, form=form, reference={})
+        assert new.coef[1] > 0
+        assert new.coef != pytest.approx(raw.coef)
+        for n, w in ((800, {"cells": 2.0}), (5_000_000, {"cells": 200.0})):
+            assert new.predict(n, w) == pytest.approx(raw.predict(n, w), rel=1e-12)
+        assert (new.low, new.high) == pytest.approx((raw.low, raw.high), rel=1e-12)

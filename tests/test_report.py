@@ -335,10 +335,12 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
         # the estimate is the count model on the plan's own work counts (no timing involved)
         t = terms(s["triangles"], s["extra"]["work"])
         g = cal["counts"]["grid"]
-        if g.get("form", "linear") == "log":  # a power law: exp(c_1 + sum c_j log(1 + term_j))
-            want = math.exp(sum(c * (1.0 if k == "1" else math.log1p(t[k])) for k, c in zip(g["terms"], g["coef"])))
+        refs = g.get("refs") or [0.0] * len(g["terms"])  # the counts each constant is stated at
+        if g.get("form", "linear") == "log":  # a power law: exp(c_1 + sum c_j log((1 + term_j) / (1 + ref_j)))
+            want = math.exp(sum(c * (1.0 if k == "1" else math.log1p(t[k]) - math.log1p(r))
+                                for k, c, r in zip(g["terms"], g["coef"], refs)))
         else:
-            want = sum(c * t[k] for k, c in zip(g["terms"], g["coef"]))
+            want = sum(c * (t[k] - r) for k, c, r in zip(g["terms"], g["coef"], refs))
         assert s["grid_estimate_per_ray"] == pytest.approx(want, rel=1e-9), s["name"]
         assert len(s["extra"]["plan_repeats"]["bvh"]) == 2
         assert s["R_est"] == (pytest.approx(s["extra"]["plan_break_even"]["bvh"]) if s["R_est"] is not None else None)

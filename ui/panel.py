@@ -147,8 +147,9 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
         if props.samples_traced == 0:
             col.label(text="  (no sample: too few rays for any structure to pay back its build)")
         elif props.grid_cells_per_ray > 0:
+            refs = f", {props.grid_refs_per_ray:.1f} refs" if props.grid_refs_per_ray > 0 else ""
             col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: "
-                           f"{props.grid_cells_per_ray:.1f} cells, {props.grid_refs_per_ray:.1f} refs/ray)")
+                           f"{props.grid_cells_per_ray:.1f} cells{refs}/ray)")
         else:
             col.label(text=f"  (from {props.samples_traced:,} sample rays x {props.grid_sample_ratio:.2f} batch ratio)")
         if props.bvh_considered:

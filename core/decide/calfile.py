@@ -24,10 +24,14 @@ import numpy as np
 
 from ..atomic import atomic_path
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord,
-                   Prior, prior)
+                   Prior, describe_fit, prior)
 
-#: bump when the JSON layout or the meaning of a field changes
-CALIBRATION_FORMAT = 2
+#: bump when the JSON layout or the meaning of a field changes.  3 (issue 14): constants
+#: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
+#: and the 'terms' build model; a file of format 2 has neither field and reads with its old
+#: meaning (reference 1 or 0), so it still loads
+CALIBRATION_FORMAT = 3
+READABLE_FORMATS = (2, 3)
 #: the constants shipped with the package, measured by ``calibrate()`` on the default set
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "default_calibration.json"
 
@@ -149,6 +153,10 @@ class Calibration:
         lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
         return med, lo, hi
 
+    def uses_term(self, name: str) -> bool:
+        """Whether any count model weighs the work count ``name`` (e.g. 'refs')."""
+        return any(name in f.terms for f in self.counts.values())
+
     def count_per_ray(self, kind: str, n: int, work: dict):
         """(point, low, high) time per ray of ``kind`` ('grid' or a structure) on an
         N-triangle scene whose grid sample counted ``work``; None without a count model."""
@@ -168,13 +176,11 @@ class Calibration:
         return self.prior(n, kinds).floor
 
     def describe(self) -> str:
-        """One line per structure: the constants and their interval, in ns."""
+        """One line per structure: its build and per-ray model with the constants that
+        define it (times at the reference size N_REF, in ms / ns) and their interval."""
         lines = [f"calibration ({self.source}, {self.model} model, {len(self.scenes)} scenes, {self.created or 'undated'})"]
         for k, f in self.fits.items():
-            lines.append(
-                f"  {k:7s} c_B {f.c_B * 1e9:8.2f} ns [{f.c_B_low * 1e9:.2f}, {f.c_B_high * 1e9:.2f}]"
-                f"   c_R {f.c_R * 1e9:8.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]   ({f.scenes} scenes)"
-            )
+            lines.append(f"  {k:7s} {describe_fit(f, self.model)}   ({f.scenes} scenes)")
         for k, f in self.counts.items():
             lines.append(f"  {k:7s} per ray = {f.formula()}   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
         return "\n".join(lines)
@@ -196,10 +202,11 @@ class Calibration:
         version = d.get("version")
         if not isinstance(version, dict) or "format" not in version:
             raise CalibrationError("no version information (not a calibration file?)")
-        if version.get("format") != CALIBRATION_FORMAT:
-            raise CalibrationError(f"calibration format {version.get('format')!r}, this package reads format {CALIBRATION_FORMAT}")
-        if check_version:
-            diff = _first_difference(version, current_version())
+        if version.get("format") not in READABLE_FORMATS:
+            raise CalibrationError(f"calibration format {version.get('format')!r}, this package reads formats "
+                                   f"{', '.join(map(str, READABLE_FORMATS))}")
+        if check_version:  # a readable older format is no other setup
+            diff = _first_difference(dict(version, format=CALIBRATION_FORMAT), current_version())
             if diff:
                 raise CalibrationError(f"made for another setup: {diff}")
         try:
@@ -217,7 +224,8 @@ class Calibration:
                 threads=d.get("threads"), duration_s=float(d.get("duration_s", 0.0)), created=str(d.get("created", "")),
                 source=str(d.get("source", "measured")), version=version, notes=[str(x) for x in d.get("notes", [])],
                 counts={str(k): CountFit(tuple(v["terms"]), tuple(float(c) for c in v["coef"]), float(v["low"]),
-                                         float(v["high"]), int(v.get("scenes", 0)), str(v.get("form", "linear")))
+                                         float(v["high"]), int(v.get("scenes", 0)), str(v.get("form", "linear")),
+                                         tuple(float(r) for r in v.get("refs", ())))
                         for k, v in d.get("counts", {}).items()},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:

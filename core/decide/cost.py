@@ -10,9 +10,12 @@ so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
 t ~ c_R log2 N per ray (``model='paper'``).  ``model='affine'`` adds a fixed cost to
 each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative
 residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
-small scenes.  ``model='power'`` (the default) fits T_B ~ c_B (N log2 N)^p_B and
-t ~ c_R (log2 N)^p_R by least squares on log times.  The interval of each constant is
-the spread across the calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
+small scenes.  ``model='power'`` fits T_B ~ c_B (N log2 N / X_REF)^p_B and
+t ~ c_R (log2 N / L_REF)^p_R by least squares on log times.  ``model='terms'`` (the
+default, issue 14) writes the numpy BVH's build as a sum of nonnegative costs in N,
+a + d (log2 N - 10) + b n + c n (log2 N - 16) with n = N / N_REF, which follows its U-shaped build per triangle from 500 to 1M triangles, and
+keeps the power model elsewhere.  The interval of each constant is the spread across the
+calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
 after R* = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise.  ``break_even`` is
@@ -27,8 +30,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-DEFAULT_MODEL = "power"
+DEFAULT_MODEL = "terms"
 DEFAULT_SPREAD = (10.0, 90.0)
+
+#: the scene size every fitted constant is stated at (issue 14): a constant is a time at
+#: N_REF triangles, or a slope there, so that two calibrations agree on it even where they
+#: trade an intercept against a slope far from the data (a + b log2 N's a was the time at
+#: N = 1, 128.7% apart between two calibrations in a row)
+N_REF = 65_536
+L_REF = 16.0  # log2 N_REF
+X_REF = float(N_REF * 16)  # N_REF log2 N_REF
 
 
 def break_even(build: float, t_grid: float, t_hds: float) -> float:
@@ -214,56 +225,186 @@ def _loglog_fit(x, y) -> tuple[float, float]:
 POWER_MIN_RATIO = {"build": 10.0, "per_ray": 1.5}
 
 
-def _power_or_affine(x, y, min_ratio: float) -> tuple[float, float, float]:
-    """(a, c, p) of y ~ a + c x^p: the log-space power law (a = 0) where x spans
+def _power_or_affine(x, y, min_ratio: float, x_ref: float) -> tuple[float, float, float]:
+    """(a, c, p) of y ~ a + c (x / x_ref)^p: the log-space power law (a = 0) where x spans
     ``min_ratio``, else the affine least squares (p = 1)."""
     if _spans(x, min_ratio):
         c, p = _loglog_fit(x, y)
-        return 0.0, c, p
+        return 0.0, c * x_ref ** p, p
     a, c = _affine_lsq(x, y)
-    return a, c, 1.0
+    return a, c * x_ref, 1.0
+
+
+def _ratio_spread(x, y, f, spread) -> list[float]:
+    """(low, high) percentiles of measured / fitted over the scenes, bracketing 1."""
+    q = [yi / f(xi) for xi, yi in zip(x, y) if f(xi) > 0 and yi > 0]
+    if not q:
+        return [1.0, 1.0]
+    lo, hi = (float(v) for v in np.percentile(q, spread))
+    return [min(lo, 1.0), max(hi, 1.0)]
 
 
 def _fit_power(records: list[SceneRecord], kind: str, spread) -> KindFit:
-    """T_B ~ c_B (N log2 N)^p_B and t ~ c_R (log2 N)^p_R, fitted in log space: a power law
-    bends where the affine model needs a fixed term, and with no constraint to switch on or
-    off its constants move smoothly with the timings (issue 14: two calibrations in a row
-    gave affine build constants 90% apart).  Where the calibration scenes' sizes are too
-    close to measure an exponent (``POWER_MIN_RATIO``) it is the affine model.  The interval
-    scales c by the spread of measured / fitted over the scenes."""
+    """T_B ~ c_B (N log2 N / X_REF)^p_B and t ~ c_R (log2 N / L_REF)^p_R, fitted in log
+    space: c_B is the build time and c_R the time per ray of an N_REF-triangle scene (65,536),
+    p_B and p_R the exponents.  A power law bends where the affine model needs a fixed term,
+    and with no constraint to switch on or off its constants move smoothly with the timings
+    (issue 14: two calibrations in a row gave affine build constants 90% apart); stating c at
+    N_REF instead of at x = 1 keeps it within the data, where the exponent cannot trade
+    against it.  Where the calibration scenes' sizes are too close to measure an exponent
+    (``POWER_MIN_RATIO``) it is the affine model a + c (x / x_ref).  The interval scales c by
+    the spread of measured / fitted over the scenes."""
     have = [r for r in records if kind in r.kinds]
     xb, yb = [nlog2n(r.triangles) for r in have], [r.kinds[kind].build_time for r in have]
     xr, yr = [log2n(r.triangles) for r in have], [r.kinds[kind].per_ray for r in have]
-    ab, cb, pb = _power_or_affine(xb, yb, POWER_MIN_RATIO["build"])
-    ar, cr, pr = _power_or_affine(xr, yr, POWER_MIN_RATIO["per_ray"])
-
-    def spread_of(x, y, a, c, p):
-        q = [yi / (a + c * xi ** p) for xi, yi in zip(x, y) if a + c * xi ** p > 0 and yi > 0]
-        if not q:
-            return [1.0, 1.0]
-        lo, hi = (float(v) for v in np.percentile(q, spread))
-        return [min(lo, 1.0), max(hi, 1.0)]
-
-    qb, qr = spread_of(xb, yb, ab, cb, pb), spread_of(xr, yr, ar, cr, pr)
+    ab, cb, pb = _power_or_affine(xb, yb, POWER_MIN_RATIO["build"], X_REF)
+    ar, cr, pr = _power_or_affine(xr, yr, POWER_MIN_RATIO["per_ray"], L_REF)
+    qb = _ratio_spread(xb, yb, lambda x: ab + cb * (x / X_REF) ** pb, spread)
+    qr = _ratio_spread(xr, yr, lambda x: ar + cr * (x / L_REF) ** pr, spread)
     return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have),
-                   extra={"p_B": pb, "p_R": pr, "a_B": ab, "a_R": ar})
+                   extra={"p_B": pb, "p_R": pr, "a_B": ab, "a_R": ar, "x_ref_B": X_REF, "x_ref_R": L_REF})
 
 
 def _estimate_power(fit: KindFit, kind: str, n: int) -> Estimate:
-    """a + c x^p with the interval on c (a = 0 where the exponent was fitted)."""
-    x, y = nlog2n(n), log2n(n)
-    xb, yr = x ** fit.extra.get("p_B", 1.0), y ** fit.extra.get("p_R", 1.0)
-    a_b, a_r = fit.extra.get("a_B", 0.0), fit.extra.get("a_R", 0.0)
+    """a + c (x / x_ref)^p with the interval on c (a = 0 where the exponent was fitted).
+    x_ref is 1 in files of format 2 (c was the factor of x^p then)."""
+    e = fit.extra
+    xb = (nlog2n(n) / e.get("x_ref_B", 1.0)) ** e.get("p_B", 1.0)
+    yr = (log2n(n) / e.get("x_ref_R", 1.0)) ** e.get("p_R", 1.0)
+    a_b, a_r = e.get("a_B", 0.0), e.get("a_R", 0.0)
     return Estimate(kind, a_b + fit.c_B * xb, a_b + fit.c_B_low * xb, a_b + fit.c_B_high * xb,
                     a_r + fit.c_R * yr, a_r + fit.c_R_low * yr, a_r + fit.c_R_high * yr)
 
 
+# -- the 'terms' model: a build that is a sum of costs in N (issue 14) -------------------------
+
+#: where the build's fixed cost is stated: a 1,024-triangle scene, among the small
+#: calibration scenes whose builds it dominates (stated at N_REF instead, two calibrations in
+#: a row gave it 14% apart; here 3.5%)
+L_FIXED = 10.0
+
+
+def build_terms(n: float) -> dict[str, float]:
+    """The build model's regressors for an N-triangle scene: the fixed cost ('1'); the
+    per-level cost ('log2n-10': one Python/numpy round per level of the tree, log2 N - 10
+    levels beyond a 1,024-triangle scene's); the per-triangle cost ('n': N / N_REF) and its
+    growth with the depth ('n(log2n-16)': (N / N_REF)(log2 N - 16), the N log2 N of the paper
+    with its N part moved into 'n')."""
+    lg = math.log2(max(float(n), 2.0))
+    r = float(n) / N_REF
+    return {"1": 1.0, "log2n-10": lg - L_FIXED, "n": r, "n(log2n-16)": r * (lg - L_REF)}
+
+
+#: the build terms of each structure (``build_terms``), chosen by leave-one-out on the
+#: calibration scenes and on held-out meshes (BENCHMARKS.md, issue 14).  The numpy BVH's
+#: build per triangle is U-shaped in N (15-20 us at 1k triangles, a fixed and a per-level
+#: cost; 1.7-2.2 us at 70k-300k; 2.8-3 us above 600k, where its arrays leave the cache):
+#: all four terms follow it (held-out build error 7-8%, against 41% for the power law), and
+#: dropping either 'log2n-10' or 'n(log2n-16)' doubles that.  A structure not named here
+#: keeps the power model's build: Embree's, for which the terms followed the builds closer
+#: (8-9% against 22%) but raised the held-out break-even error from 10-11% to 19-30% over
+#: two calibrations, because the power law's +15-22% on the build offsets the count models'
+#: overestimate of the gain per ray t_G - t_H; a better per-ray model should end that
+BUILD_TERMS = {"bvh": ("1", "log2n-10", "n", "n(log2n-16)")}
+
+
+#: the spread of N the terms need (the largest calibration scene over the smallest): the
+#: fixed cost shows below ~5k triangles and the per-triangle cost's growth above ~100k, so
+#: a set that does not reach both ('tiny': 500-1k, 'quick': 1k-60k) gets the power model,
+#: which extrapolates more gently
+TERMS_MIN_RATIO = 100.0
+
+
+def _terms_value(names, coef, n: float) -> float:
+    t = build_terms(n)
+    return float(sum(c * t[k] for k, c in zip(names, coef)))
+
+
+def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
+    """T_B ~ sum_j b_j term_j(N) over ``BUILD_TERMS[kind]`` (the power model for a kind not
+    named there), b_j >= 0 by least squares on relative residuals (``nonneg_relative_lsq``).
+    Each b_j is a time in seconds: '1', the fixed and per-level cost of a 1,024-triangle
+    build; 'log2n-10', what one doubling of N adds to that; 'n', the per-triangle part of an
+    N_REF-triangle build (65,536); 'n(log2n-16)', what one doubling adds to that part per
+    N_REF triangles.  c_B is the fitted build of an N_REF-triangle scene.  Scenes smaller
+    than the smallest calibration scene (n_min) are estimated as that scene: below it the
+    per-level term is not measured and could make a build negative.  The time per ray is the
+    power model's, c_R (log2 N / L_REF)^p_R.  The interval scales the build by the spread
+    of measured / fitted over the scenes.  With fewer scenes than terms + 1, or sizes spanning
+    less than TERMS_MIN_RATIO, it is the power model."""
+    power = _fit_power(records, kind, spread)
+    names = BUILD_TERMS.get(kind)
+    have = [r for r in records if kind in r.kinds and r.kinds[kind].build_time > 0]
+    ns = [r.triangles for r in have]
+    if names is None or len(have) < len(names) + 1 or not _spans(ns, TERMS_MIN_RATIO):
+        return power  # not a terms structure, or too few scenes or sizes to weigh its terms
+    y = np.array([r.kinds[kind].build_time for r in have])
+    x = np.array([[build_terms(n)[k] for k in names] for n in ns])
+    b = nonneg_relative_lsq(x, y)
+    n_min = min(ns)
+    f = lambda n: _terms_value(names, b, max(n, n_min))  # noqa: E731
+    cb = f(N_REF)
+    qb = _ratio_spread(ns, y, f, spread)
+    extra = {k: v for k, v in power.extra.items() if k.endswith("_R")}
+    extra.update({"terms_B": list(names), "coef_B": [float(v) for v in b], "n_min": int(n_min)})
+    return KindFit(cb, power.c_R, cb * qb[0], cb * qb[1], power.c_R_low, power.c_R_high, len(have), extra=extra)
+
+
+def _estimate_terms(fit: KindFit, kind: str, n: int) -> Estimate:
+    """sum_j b_j term_j(max(N, n_min)), the interval as the ratio of c_B's; the power model's
+    per-ray time (and build, for a structure fitted without terms)."""
+    e = fit.extra
+    if "coef_B" not in e:
+        return _estimate_power(fit, kind, n)
+    build = _terms_value(e["terms_B"], e["coef_B"], max(int(n), int(e.get("n_min", 1))))
+    lo, hi = (fit.c_B_low / fit.c_B, fit.c_B_high / fit.c_B) if fit.c_B > 0 else (1.0, 1.0)
+    p = _estimate_power(fit, kind, n)
+    return Estimate(kind, build, build * lo, build * hi, p.per_ray, p.per_ray_low, p.per_ray_high)
+
+
 #: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
-#: KindFit.extra.  'power' (issue 14) is the default: fitted in log space it has the lowest
-#: held-out build error on the real meshes, with no fixed term that a calibration can drop
-#: (BENCHMARKS.md, issue 14; 'affine' was the default from issue 4).
+#: KindFit.extra.  'terms' (issue 14) is the default: its numpy BVH build has a held-out
+#: error of 7-8% where 'power' had 41% (BENCHMARKS.md, issue 14; 'power' was the default
+#: before it, 'affine' from issue 4).
 MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine),
-          "power": (_fit_power, _estimate_power)}
+          "power": (_fit_power, _estimate_power), "terms": (_fit_terms, _estimate_terms)}
+
+
+def fit_constants(f: KindFit, model: str) -> dict[str, float]:
+    """Each constant a model fitted, by what it means (what two calibrations should agree
+    on): times in seconds, exponents bare.  'power' and 'terms' state their times at N_REF
+    (format 3; a format-2 'power' file's c is the factor of x^p)."""
+    e = f.extra
+    if model == "terms" and "coef_B" in e:
+        out = {f"build {t}": c for t, c in zip(e["terms_B"], e["coef_B"])}
+        return {**out, "build at N_REF": f.c_B, "per ray at N_REF": f.c_R, "p_R": e.get("p_R", 1.0)}
+    if model in ("power", "terms"):
+        out = {"build at N_REF" if "x_ref_B" in e else "c_B": f.c_B, "p_B": e.get("p_B", 1.0),
+               "per ray at N_REF" if "x_ref_R" in e else "c_R": f.c_R, "p_R": e.get("p_R", 1.0)}
+        out.update({k: e[k] for k in ("a_B", "a_R") if e.get(k)})
+        return out
+    return {"c_B": f.c_B, "c_R": f.c_R, **{k: e[k] for k in ("a_B", "a_R") if k in e}}
+
+
+def describe_fit(f: KindFit, model: str) -> str:
+    """One structure's fitted model as a reader writes it (ms for builds, ns per ray)."""
+    e = f.extra
+    per_ray = (f"per ray {f.c_R * 1e9:.2f} ns [{f.c_R_low * 1e9:.2f}, {f.c_R_high * 1e9:.2f}]"
+               + (f" x (log2 N / {e['x_ref_R']:g})^{e.get('p_R', 1.0):.3f}" if "x_ref_R" in e else
+                  f" x (log2 N)^{e['p_R']:.3f}" if "p_R" in e else " x log2 N")
+               + (f" + {e['a_R'] * 1e9:.2f} ns" if e.get("a_R") else ""))
+    if model == "terms" and "coef_B" in e:
+        names = {"1": "", "log2n-10": " x (log2 N - 10)", "n": " x n", "n(log2n-16)": " x n (log2 N - 16)"}
+        build = " + ".join(f"{c * 1e3:.3g} ms{names.get(t, ' x ' + t)}" for t, c in zip(e["terms_B"], e["coef_B"]))
+        return (f"build {build} (n = N / {N_REF:,}, N >= {e.get('n_min', 1):,}): {f.c_B * 1e3:.1f} ms at N = {N_REF:,} "
+                f"[{f.c_B_low * 1e3:.1f}, {f.c_B_high * 1e3:.1f}]   {per_ray}")
+    if "x_ref_B" in e:
+        build = (f"build {f.c_B * 1e3:.1f} ms [{f.c_B_low * 1e3:.1f}, {f.c_B_high * 1e3:.1f}] x "
+                 f"(N log2 N / {e['x_ref_B']:,.0f})^{e.get('p_B', 1.0):.3f}")
+    else:
+        build = (f"build c_B {f.c_B * 1e9:.2f} ns [{f.c_B_low * 1e9:.2f}, {f.c_B_high * 1e9:.2f}] x "
+                 + (f"(N log2 N)^{e['p_B']:.3f}" if "p_B" in e else "N log2 N"))
+    return build + (f" + {e['a_B'] * 1e3:.2f} ms" if e.get("a_B") else "") + "   " + per_ray
 
 
 def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread=DEFAULT_SPREAD) -> dict[str, KindFit]:
@@ -281,8 +422,14 @@ def terms(triangles: int, work: dict) -> dict[str, float]:
     """The named quantities a count model may weigh, for one scene: its size and the grid
     sample's per-ray means (``work.Work``)."""
     lg = log2n(triangles)
-    w = {k: float(work.get(k, 0.0)) for k in ("cells", "refs", "hit", "length")}
-    return {"1": 1.0, "log2n": lg, **w, "hit_log2n": w["hit"] * lg, "length_log2n": w["length"] * lg}
+    # a count the sample did not take (refs when no model weighs them) is absent, so a
+    # model that needs it fails by name instead of reading a zero
+    w = {k: float(v) for k in ("cells", "refs", "hit", "length") if (v := work.get(k)) is not None}
+    out = {"1": 1.0, "log2n": lg, **w}
+    for k in ("hit", "length"):
+        if k in w:
+            out[f"{k}_log2n"] = w[k] * lg
+    return out
 
 
 def nonneg_relative_lsq(x, y) -> np.ndarray:
@@ -309,15 +456,28 @@ def _log_columns(x: np.ndarray, names) -> np.ndarray:
                      for j, k in enumerate(names)], axis=1)
 
 
+#: where each count model's constant is stated (issue 14): a count model's '1' coefficient is
+#: its time per ray at these counts, not at zero counts far outside the data, where it traded
+#: against the slopes (the BVH's 'ns x 1' moved 128.7% between two calibrations in a row).
+#: log2n: an N_REF-triangle scene; cells: 15 cells a ray (1 + cells = 16; the calibration
+#: scenes' median is 14).  A term not named here is stated at 0
+COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0}
+
+
 @dataclass
 class CountFit:
     """time per ray from the named ``terms`` (seconds), with the spread of measured / fitted
-    over the calibration scenes as (low, high) multipliers.
+    over the calibration scenes as (low, high) multipliers, stated at the reference counts
+    ``refs`` (one per term; r_j = 0 for '1'):
 
-    form 'linear': sum_j coef[j] term_j, coefficients >= 0 (``nonneg_relative_lsq``);
-    form 'log':    exp(sum_j coef[j] L_j) with L = 1 for '1' and log(1 + term) else, a power
-                   law fitted by least squares on log time (no sign constraint, so no term is
-                   dropped in one calibration and kept in the next)."""
+    form 'linear': coef['1'] + sum_j coef[j] (term_j - r_j), coef['1'] being the time per ray
+                   at the reference and the slopes >= 0 (``nonneg_relative_lsq``, with each
+                   term's own cost >= 0);
+    form 'log':    exp(coef['1']) prod_j ((1 + term_j) / (1 + r_j))^coef[j]: exp(coef['1'])
+                   is the time per ray at the reference, a power law fitted by least squares
+                   on log time (no sign constraint, so no term is dropped in one calibration
+                   and kept in the next).
+    ``refs`` empty (files of format 2): every r_j = 0."""
 
     terms: tuple
     coef: tuple
@@ -325,39 +485,76 @@ class CountFit:
     high: float = 1.0
     scenes: int = 0
     form: str = "linear"
+    refs: tuple = ()
+
+    def _refs(self) -> tuple:
+        return tuple(self.refs) if self.refs else tuple(0.0 for _ in self.terms)
 
     def predict(self, triangles: int, work: dict) -> float:
         t = terms(triangles, work)
+        missing = [k for k in self.terms if k not in t]
+        if missing:
+            raise ValueError(f"the grid sample's work counts lack {', '.join(missing)}, which this count model weighs")
+        refs = self._refs()
         if self.form == "log":
             x = np.array([[t[k] for k in self.terms]], np.float64)
-            return float(np.exp(_log_columns(x, self.terms)[0] @ np.asarray(self.coef, np.float64)))
-        return float(sum(c * t[k] for k, c in zip(self.terms, self.coef)))
+            r = np.array([[0.0 if k == "1" else v for k, v in zip(self.terms, refs)]], np.float64)
+            cols = _log_columns(x, self.terms)[0] - np.where(np.array(self.terms) == "1", 0.0, np.log1p(r[0]))
+            return float(np.exp(cols @ np.asarray(self.coef, np.float64)))
+        return float(sum(c * (t[k] - (0.0 if k == "1" else r)) for k, c, r in zip(self.terms, self.coef, refs)))
+
+    def constants(self) -> dict[str, float]:
+        """Each fitted constant by what it means: the time per ray at the reference (s) and
+        each term's slope (linear, s a unit) or exponent (log)."""
+        out = {}
+        for k, c, r in zip(self.terms, self.coef, self._refs()):
+            if k == "1":
+                out["at ref" if self.refs else "1"] = math.exp(c) if self.form == "log" else c
+            else:
+                out[("p " if self.form == "log" else "x ") + k] = c
+        return out
 
     def formula(self) -> str:
-        """The model as a reader writes it, in ns: '2.1 ns x 1 + 0.1 ns x cells' or
-        '919 ns x (1 + cells)^0.624'."""
+        """The model as a reader writes it, in ns: '2.10 ns + 0.10 ns x (log2n - 16)' or
+        '919.00 ns x ((1 + cells) / 16)^0.624'."""
+        refs = self._refs()
         if self.form == "log":
             scale = math.exp(self.coef[self.terms.index("1")]) * 1e9
-            return f"{scale:.2f} ns" + "".join(f" x (1 + {t})^{c:.3f}" for t, c in zip(self.terms, self.coef) if t != "1")
-        return " + ".join(f"{c * 1e9:.2f} ns x {t}" for t, c in zip(self.terms, self.coef))
+            return f"{scale:.2f} ns" + "".join(
+                f" x ((1 + {t}) / {1 + r:g})^{c:.3f}" if r else f" x (1 + {t})^{c:.3f}"
+                for t, c, r in zip(self.terms, self.coef, refs) if t != "1")
+        return " + ".join(f"{c * 1e9:.2f} ns" if t == "1" and self.refs else
+                          f"{c * 1e9:.2f} ns x ({t} - {r:g})" if r else f"{c * 1e9:.2f} ns x {t}"
+                          for t, c, r in zip(self.terms, self.coef, refs))
 
     @classmethod
-    def fit(cls, rows, names, spread=DEFAULT_SPREAD, form: str = "linear") -> "CountFit":
-        """rows: (triangles, work dict, measured time per ray) per scene."""
+    def fit(cls, rows, names, spread=DEFAULT_SPREAD, form: str = "linear", reference=None) -> "CountFit":
+        """rows: (triangles, work dict, measured time per ray) per scene.  ``reference``:
+        {term: count} where the constants are stated (default ``COUNT_REFERENCE``; {} states
+        them at zero counts, as format 2 did).  The fit itself is the uncentred one, so the
+        reference changes the constants, never the predictions."""
         if form not in ("linear", "log"):
             raise ValueError(f"unknown count-model form {form!r}; expected 'linear' or 'log'")
         if form == "log" and "1" not in names:
             raise ValueError("a 'log' count model needs the term '1' (its scale)")
+        reference = COUNT_REFERENCE if reference is None else reference
+        refs = tuple(0.0 if k == "1" else float(reference.get(k, 0.0)) for k in names) if "1" in names else ()
+        refs = refs if any(refs) else ()
         rows = [r for r in rows if r[2] > 0 and math.isfinite(r[2])]
         if not rows:
-            return cls(tuple(names), tuple(0.0 for _ in names), form=form)
+            return cls(tuple(names), tuple(0.0 for _ in names), form=form, refs=refs)
         x = np.array([[terms(n, w)[k] for k in names] for n, w, _ in rows])
         y = np.array([t for _, _, t in rows])
         if form == "log":
             b, *_ = np.linalg.lstsq(_log_columns(x, names), np.log(y), rcond=None)
+            shift = sum(c * math.log1p(r) for c, r, k in zip(b, refs, names) if k != "1")
         else:
             b = nonneg_relative_lsq(x, y)
-        f = cls(tuple(names), tuple(float(v) for v in b), scenes=len(rows), form=form)
+            shift = sum(c * r for c, r, k in zip(b, refs, names) if k != "1")
+        b = [float(v) for v in b]
+        if refs:
+            b[list(names).index("1")] += float(shift)
+        f = cls(tuple(names), tuple(b), scenes=len(rows), form=form, refs=refs)
         q = [t / p for (n, w, t) in rows if (p := f.predict(n, w)) > 0]
         if q:
             lo, hi = (float(v) for v in np.percentile(q, spread))
@@ -384,15 +581,16 @@ COUNT_TERMS = {
 COUNT_FORMS = {"grid": "log", "bvh": "linear", "embree": "linear"}
 
 
-def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None) -> dict[str, CountFit]:
-    """A CountFit per kind ('grid' and the structures) over the records with work counts."""
+def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None, reference=None) -> dict[str, CountFit]:
+    """A CountFit per kind ('grid' and the structures) over the records with work counts,
+    its constants stated at ``reference`` (``CountFit.fit``)."""
     terms_of = dict(COUNT_TERMS, **(terms_of or {}))
     forms_of = dict(COUNT_FORMS, **(forms_of or {}))
     out = {}
     for k in kinds:
         rows = [(r.triangles, r.work, r.kinds[k].per_ray) for r in records if r.work and k in r.kinds]
         if len(rows) >= 3 and k in terms_of:
-            out[k] = CountFit.fit(rows, terms_of[k], spread, forms_of.get(k, "linear"))
+            out[k] = CountFit.fit(rows, terms_of[k], spread, forms_of.get(k, "linear"), reference)
     return out
 
 

@@ -401,7 +401,10 @@ MODEL_DOCS = {
     "paper": "c_B = mean T_B/(N log2 N), c_R = mean T_R/(M log2 N) (section 3)",
     "median": "the same ratios' medians",
     "affine": "T_B = a_B + c_B N log2 N, t = a_R + c_R log2 N, least squares on relative residuals",
-    "power": "T_B = c_B (N log2 N)^p_B, t = c_R (log2 N)^p_R, least squares on log times",
+    "power": "T_B = c_B (N log2 N / 2^20)^p_B, t = c_R (log2 N / 16)^p_R, least squares on log times "
+             "(c_B, c_R: a 65,536-triangle scene's)",
+    "terms": "T_B = a + d (log2 N - 10) + b n + c n (log2 N - 16), n = N / 65,536, coefficients >= 0 by least "
+             "squares on relative residuals; t as 'power'",
 }
 
 

@@ -11,7 +11,9 @@ From the sample's hits and the grid's public geometry (``lo``, ``cell_size``, ``
   visits ``1 + |di| + |dj| + |dk|`` cells;
 - refs: the triangle references tested in them, estimated as cells x the mean reference
   count of the cells at ``POINTS`` evenly spaced points of that segment (on at most
-  ``REFS_RAYS`` of the rays, evenly spread);
+  ``REFS_RAYS`` of the rays, evenly spread); counted only when asked (calibration counts
+  it for the models that may weigh it; a plan only when its calibration's models do,
+  since it is a fifth of the estimate's cost);
 - hit: whether it hit; length: its segment in the grid over the grid's diagonal.
 
 A cost model turns the means of these into times with constants fitted on the
@@ -39,7 +41,7 @@ class Work:
 
     rays: int
     cells: float
-    refs: float
+    refs: float | None
     hit: float
     length: float
 
@@ -47,14 +49,15 @@ class Work:
         return asdict(self)
 
 
-def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf) -> Work:
+def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf, *, refs: bool = True) -> Work:
     """Per-ray work counts of the rays ``origins + t directions`` through ``grid``, whose
-    nearest hits are at ``t_hit`` (inf for a miss), averaged over the rays."""
+    nearest hits are at ``t_hit`` (inf for a miss), averaged over the rays; ``refs=False``
+    leaves the reference count out (None)."""
     o = np.asarray(origins, np.float64)
     d = np.asarray(directions, np.float64)
     m = len(o)
     if m == 0:
-        return Work(0, 0.0, 0.0, 0.0, 0.0)
+        return Work(0, 0.0, 0.0 if refs else None, 0.0, 0.0)
     lo = np.asarray(grid.lo, np.float64)
     cs = np.asarray(grid.cell_size, np.float64)
     res = np.asarray(grid.res, np.int64)
@@ -73,7 +76,7 @@ def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf) -> Work:
     te = np.where(hit, np.minimum(te, th), te)
     live = ts <= te
     if not live.any():
-        return Work(m, 0.0, 0.0, float(hit.mean()), 0.0)
+        return Work(m, 0.0, 0.0 if refs else None, float(hit.mean()), 0.0)
     o, d, ts, te = o[live], d[live], ts[live], te[live]
 
     def cell(oo, dd, t):
@@ -82,6 +85,11 @@ def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf) -> Work:
 
     i0, i1 = cell(o, d, ts), cell(o, d, te)
     cells = 1 + np.abs(i1 - i0).sum(axis=1)
+    diag = float(np.sqrt(((hi - lo) ** 2).sum())) or 1.0
+    length = (te - ts) * np.sqrt((d * d).sum(axis=1)) / diag
+    mean_cells, mean_length, hit_share = float(cells.sum() / m), float(length.sum() / m), float(hit.mean())
+    if not refs:
+        return Work(m, mean_cells, None, hit_share, mean_length)
     counts = np.diff(np.asarray(grid.cell_start)[: int(np.prod(res)) + 1])
     stride = np.array([1, res[0], res[0] * res[1]], np.int64)
     sub = np.unique(np.linspace(0, len(o) - 1, min(len(o), REFS_RAYS)).astype(np.int64))
@@ -90,8 +98,5 @@ def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf) -> Work:
     for fj in (np.arange(POINTS) + 0.5) / POINTS:
         mean_refs += counts[cell(so, sd, sts + fj * (ste - sts)) @ stride]
     mean_refs /= POINTS
-    diag = float(np.sqrt(((hi - lo) ** 2).sum())) or 1.0
-    length = (te - ts) * np.sqrt((d * d).sum(axis=1)) / diag
     live_share = len(ts) / m  # rays that miss the grid's box step through no cell: zeros in the means
-    refs = float((cells[sub] * mean_refs).mean()) * live_share
-    return Work(m, float(cells.sum() / m), refs, float(hit.mean()), float(length.sum() / m))
+    return Work(m, mean_cells, float((cells[sub] * mean_refs).mean()) * live_share, hit_share, mean_length)

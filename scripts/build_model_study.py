@@ -1,0 +1,161 @@
+"""Build-model candidates and the constants' repeatability, offline (issue 14): no timing.
+
+Refits saved calibrations with each candidate build model and judges it by leave-one-out over
+the calibration scenes and on a report's held-out truths (each structure's build and time per
+ray, and the grid's work counts from the plan's sample), with the calibration's count models
+for the times per ray.  With two calibration files it also prints how far apart each fitted
+constant is (``cost.fit_constants``, ``CountFit.constants``), as ``report.py`` does.
+
+    .venv/bin/python scripts/build_model_study.py --report docs/report/report.json cal1.json cal2.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _package import core_package  # noqa: E402
+
+core_package()
+
+from hybrid_raycast.core.decide import calfile, cost  # noqa: E402
+
+#: (label, model, build terms for 'terms' or None): the candidates of BENCHMARKS.md (issue 14)
+CANDIDATES = [
+    ("power c (N l)^p", "power", None),
+    ("affine a + c N l", "affine", None),
+    ("a + b n", "terms", ("1", "n")),
+    ("a + d (l-10) + b n", "terms", ("1", "log2n-10", "n")),
+    ("a + d (l-10) + c n (l-16)", "terms", ("1", "log2n-10", "n(log2n-16)")),
+    ("b n + c n (l-16)", "terms", ("n", "n(log2n-16)")),
+    ("a + d (l-10) + b n + c n (l-16)", "terms", ("1", "log2n-10", "n", "n(log2n-16)")),
+]
+
+
+@contextmanager
+def build_terms(kind: str, names):
+    """``cost.BUILD_TERMS[kind] = names`` for the duration (None: leave it alone)."""
+    old = dict(cost.BUILD_TERMS)
+    if names is not None:
+        cost.BUILD_TERMS[kind] = tuple(names)
+    try:
+        yield
+    finally:
+        cost.BUILD_TERMS.clear()
+        cost.BUILD_TERMS.update(old)
+
+
+def rel(a: float, b: float) -> float:
+    """|a - b| / mean in %."""
+    m = (abs(a) + abs(b)) / 2
+    return 100.0 * abs(a - b) / m if m > 0 else 0.0
+
+
+def med_abs(v) -> float:
+    v = [x for x in v if math.isfinite(x)]
+    return 100.0 * float(np.median(np.abs(v))) if v else math.nan
+
+
+def judge(cal, truths, kind: str, model: str, names) -> dict:
+    """Median |error| of the build and of the break-even, leave-one-out over the calibration
+    scenes (count models refitted without the scene) and on the held-out truths."""
+    est = cost.MODELS[model][1]
+    scenes = [r for r in cal.scenes if kind in r.kinds and "grid" in r.kinds]
+    with build_terms(kind, names):
+        loo_b, loo_be = [], []
+        for i, r in enumerate(scenes):
+            rest = scenes[:i] + scenes[i + 1:]
+            b = est(cost.fit(rest, (kind,), model=model)[kind], kind, r.triangles).build
+            loo_b.append(b / r.kinds[kind].build_time - 1)
+            counts = cost.fit_counts(rest, ("grid", kind), cal.spread)
+            if r.work and {"grid", kind} <= set(counts):
+                rc = cost.break_even(r.kinds[kind].build_time, r.kinds["grid"].per_ray, r.kinds[kind].per_ray)
+                re = cost.break_even(b, counts["grid"].predict(r.triangles, r.work), counts[kind].predict(r.triangles, r.work))
+                if math.isfinite(rc) and math.isfinite(re) and rc > 0:
+                    loo_be.append(re / rc - 1)
+        f = cost.fit(scenes, (kind,), model=model)[kind]
+    counts = cost.fit_counts(cal.scenes, ("grid", kind), cal.spread)
+    held_b, held_be = [], []
+    for s in truths:
+        n, m = s["triangles"], s["measured"][kind]
+        b = est(f, kind, n).build
+        held_b.append(b / m["build"] - 1)
+        w = s["extra"]["work"]
+        rc = cost.break_even(m["build"], s["grid"]["per_ray"], m["per_ray"])
+        re = cost.break_even(b, counts["grid"].predict(n, w), counts[kind].predict(n, w))
+        if math.isfinite(rc) and math.isfinite(re):
+            held_be.append(re / rc - 1)
+    return {"loo_build": med_abs(loo_b), "loo_be": med_abs(loo_be), "held_build": med_abs(held_b),
+            "held_build_signed": 100.0 * float(np.median(held_b)), "held_be": med_abs(held_be), "fit": f}
+
+
+def refit(cal):
+    """The calibration refitted with the package's default model and count models."""
+    return replace(cal, fits=cost.fit(cal.scenes, tuple(cal.fits), spread=cal.spread), model=cost.DEFAULT_MODEL,
+                   counts=cost.fit_counts(cal.scenes, ("grid",) + tuple(cal.fits), cal.spread))
+
+
+def constants_apart(a, b) -> dict[str, float]:
+    """Each constant's |a - b| / mean between two calibrations fitted with the same model."""
+    out = {}
+    for k, f in a.fits.items():
+        if k in b.fits:
+            ca, cb = cost.fit_constants(f, a.model), cost.fit_constants(b.fits[k], b.model)
+            out.update({f"{k} {n}": rel(v, cb[n]) for n, v in ca.items() if n in cb})
+    for k, f in a.counts.items():
+        g = b.counts.get(k)
+        if g is not None and (g.terms, g.form, g.refs) == (f.terms, f.form, f.refs):
+            cb = g.constants()
+            out.update({f"{k} per ray {n}": rel(v, cb[n]) for n, v in f.constants().items()})
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("calibrations", nargs="+", help="calibration JSON files (records are refitted)")
+    ap.add_argument("--report", default="docs/report/report.json", help="report.json with the held-out truths")
+    ap.add_argument("--kinds", nargs="+", default=["bvh", "embree"])
+    args = ap.parse_args(argv)
+    try:
+        truths = json.loads(Path(args.report).read_text(encoding="utf-8"))["scenes"]
+        cals = [calfile.load(p, check_version=False) for p in args.calibrations]
+    except (OSError, KeyError, json.JSONDecodeError, calfile.CalibrationError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    truths = [s for s in truths if (s.get("extra") or {}).get("work")]
+    names = " / ".join(Path(p).name for p in args.calibrations)
+    print(f"{len(truths)} held-out scenes from {args.report}; median |error| in %, per calibration ({names})")
+    for kind in args.kinds:
+        print(f"\n{kind} build | LOO build | LOO break-even | held-out build (median signed) | held-out break-even"
+              + (" | 2 cal.: build constants max apart" if len(cals) == 2 else ""))
+        for label, model, terms in CANDIDATES:
+            rows = [judge(c, truths, kind, model, terms) for c in cals]
+            line = " | ".join(" / ".join(f"{r[key]:.1f}" for r in rows) for key in ("loo_build", "loo_be"))
+            line += " | " + " / ".join(f"{r['held_build']:.1f} ({r['held_build_signed']:+.1f})" for r in rows)
+            line += " | " + " / ".join(f"{r['held_be']:.1f}" for r in rows)
+            if len(rows) == 2:
+                ca, cb = (cost.fit_constants(r["fit"], model) for r in rows)
+                apart = [rel(v, cb[n]) for n, v in ca.items()
+                         if n in cb and (n.startswith("build") or n in ("c_B", "a_B", "p_B"))]
+                line += f" | {max(apart):.1f}" if apart else " | -"
+            print(f"{label:34s} | {line}")
+    if len(cals) == 2:
+        a, b = (refit(c) for c in cals)
+        apart = constants_apart(a, b)
+        print(f"\nconstants of the default model ('{cost.DEFAULT_MODEL}'), |a - b| / mean in %:")
+        for n, v in apart.items():
+            print(f"  {n:36s} {v:6.1f}")
+        print(f"  median {np.median(list(apart.values())):.1f}, max {max(apart.values()):.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
