@@ -621,16 +621,29 @@ class BVH(Accel):
             lh = np.flatnonzero(np.logical_and(hit, isleaf, out=w_mask[: WIDTH * A].reshape(WIDTH, A)))
             if len(lh):
                 leaf = ~ch.reshape(-1).take(lh)
+                # pairs (ray, triangle) leaf by leaf; the leaf of every pair from a running
+                # count of leaf starts (np.repeat with per-leaf counts holds the GIL, this
+                # scatter and cumsum do not; every leaf holds at least one triangle)
                 cnt = leaf_count.take(leaf)
-                pa = np.repeat(lh % A, cnt)
-                pos = np.arange(len(pa)) + np.repeat(leaf_start.take(leaf) - (np.cumsum(cnt) - cnt), cnt)
+                first = np.cumsum(cnt) - cnt
+                seg = np.zeros(int(first[-1] + cnt[-1]), np.intp)
+                seg[first[1:]] = 1
+                np.cumsum(seg, out=seg)
+                pa = (lh % A).take(seg)
+                pos = np.arange(len(seg)) + (leaf_start.take(leaf) - first).take(seg)
                 leaf_visits += len(lh)
                 pairs += len(pa)
                 r = rid.take(pa)
                 if best is not None:
                     th = intersect(rays, r, pos, self._tv, t_hi=tlim.take(pa))
-                    best.update(r, self.leaf_triangles.take(pos), th)
-                    np.minimum.at(tlim, pa, th)
+                    # only the few pairs that hit reach the scattered minimum (ufunc.at
+                    # runs element by element and holds the GIL: on every pair it
+                    # serialised the pool's threads)
+                    got = np.flatnonzero(th != F32(np.inf))
+                    if len(got):
+                        pg, tg = pa.take(got), th.take(got)
+                        best.update(r.take(got), self.leaf_triangles.take(pos.take(got)), tg)
+                        np.minimum.at(tlim, pg, tg)
                 else:
                     th = intersect(rays, r, pos, self._tv)
                     got = pa[np.isfinite(th)]

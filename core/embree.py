@@ -5,7 +5,10 @@ embreex is optional: this module imports it only when a structure is built, and
 this wrapper does about it:
 
 - ``rtcore_scene.EmbreeScene(robust=True)`` sets Embree's RTC_SCENE_FLAG_ROBUST
-  (watertight traversal and intersection, at some speed).
+  (watertight traversal and intersection, at some speed: robust=False traces Suzanne's
+  camera rays 1.22x faster, Open3D's speed, but lets 10% of the rays from inside a closed
+  mesh leak, against < 5% robust; BENCHMARKS.md, issue 10 follow-up).  Open3D uses no
+  scene flags, and also one ``rtcIntersect1`` per ray (no packets).
 - ``scene.run(origins_f32, dirs_f32, dists=None, query='INTERSECT', output=None)``
   traces one ray at a time (``rtcIntersect1``), but its loop over the rays runs inside
   ``with nogil`` (embreex ``embreex/rtcore_scene.pyx``, ``EmbreeScene.run``; checked in
@@ -163,8 +166,10 @@ class EmbreeAccel(Accel):
         out = Hits(block[0], block[1].view(np.int32), block[2], block[3])
 
         def chunk(a, b):
-            h = self._trace_rays(prepare(a, b))
-            out.t[a:b], out.triangle[a:b], out.u[a:b], out.v[a:b] = h.t, h.triangle, h.u, h.v
+            view = Hits(out.t[a:b], out.triangle[a:b], out.u[a:b], out.v[a:b])
+            h = self._trace_rays(prepare(a, b), view)
+            if h is not view:
+                view.t[:], view.triangle[:], view.u[:], view.v[:] = h.t, h.triangle, h.u, h.v
 
         self._each_chunk(chunk, m, origins, directions, tmin, tmax)
         return out
@@ -240,23 +245,35 @@ class EmbreeAccel(Accel):
         step = np.maximum(o / d, 1e-30) * 2.0 ** -21
         return np.maximum(s * (1 + 2.0 ** -21), s + step)
 
-    def _hits_from_origin(self, rays: Rays):
-        """Every ray as given over [0, tmax], when all have tmin <= 0 and tmax >= 0: Hits,
-        and the indices of the rays whose nearest hit is at exactly t = 0."""
+    def _hits_from_origin(self, rays: Rays, out: Hits | None = None):
+        """Every ray as given over [0, tmax], when all have tmin <= 0 and tmax >= 0: Hits
+        (written into ``out`` when given), and the indices of the rays whose nearest hit is at
+        exactly t = 0 (None if there are none)."""
         r = self._run(rays.origins, rays.directions, rays.tmax, "INTERSECT")
         prim, tfar = r["primID"], r["tfar"]
-        hit = prim >= 0
-        at_zero = hit & (tfar <= 0)
-        any_at_zero = at_zero.any()
-        good = hit & ~at_zero if any_at_zero else hit
-        zero = np.float32(0)
+        if out is None:
+            out = Hits(*(np.empty(len(prim), x) for x in (F32, np.int32, F32, F32)))
+        miss = prim < 0
+        at_zero = None
+        zero = np.less_equal(tfar, 0)  # a miss keeps tfar = tmax, which may be 0
+        if zero.any():
+            zero &= ~miss
+            if zero.any():
+                at_zero = np.flatnonzero(zero)
+                miss |= zero
         # embreex's primID is already -1 on a miss, u and v are whatever the previous ray left
         # (embreex rtcore_scene.pyx, EmbreeScene.run: one RTCRayHit reused for every ray)
-        triangle = (prim if self._remap is None and not any_at_zero
-                    else np.where(good, self._triangles(prim), np.int32(-1)))
-        hits = Hits(np.where(good, tfar, np.float32(np.inf)), triangle, np.where(good, r["u"], zero),
-                    np.where(good, r["v"], zero))
-        return hits, (np.flatnonzero(at_zero) if any_at_zero else None)
+        np.copyto(out.t, tfar)
+        np.copyto(out.t, F32(np.inf), where=miss)
+        if self._remap is None and at_zero is None:
+            np.copyto(out.triangle, prim)
+        else:
+            np.copyto(out.triangle, np.where(miss, np.int32(-1), self._triangles(prim)))
+        for field in ("u", "v"):
+            a = getattr(out, field)
+            np.copyto(a, r[field])
+            np.copyto(a, F32(0), where=miss)
+        return out, at_zero
 
     def _trace_from_origin(self, rays: Rays, idx, out: Hits):
         """Rays ``idx`` as given over [0, tmax] into ``out``; returns the indices of those
@@ -276,13 +293,15 @@ class EmbreeAccel(Accel):
         out.v[g] = r["v"][good]
         return idx[hit & ~good]
 
-    def _trace_rays(self, rays: Rays) -> Hits:
+    def _trace_rays(self, rays: Rays, out: Hits | None = None) -> Hits:
+        """Hits of ``rays``: written into ``out`` (and returned) on the common path when it
+        is given, else new arrays; callers copy when the returned Hits is not ``out``."""
         m = len(rays)
         if self.scene is None:
             return Hits.empty(m)
         fresh = rays.tmin <= 0  # a negative tmin only widens the range: Embree starts at 0
         if fresh.all() and (rays.tmax >= 0).all():  # the common case: no scatter, no float64
-            out, at_zero = self._hits_from_origin(rays)
+            out, at_zero = self._hits_from_origin(rays, out)
             if at_zero is None:
                 return out
             todo = np.empty(0, np.intp)

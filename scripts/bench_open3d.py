@@ -13,7 +13,9 @@ can interleave Open3D's runs with its own tracers' (the machine's load moves):
 commits, i.e. Embree builds its BVH, on the first cast) -> {"s": seconds};
 ``trace STEM`` (``cast_rays`` on RAYS STEM.npy, default threads) -> {"s": seconds};
 ``quit`` writes each batch's last primitive ids (int64, -1 on a miss) to
-DIR/<stem>.prim.npy and exits.  The first line says {"open3d": version, ...} or {"error": ...}.
+DIR/<stem>.prim.npy, answers {"done": true, "peak_rss_bytes": VmHWM} and exits.  The first
+line says {"open3d": version, ..., "rss_bytes": VmRSS with the mesh and rays loaded} or
+{"error": ...}, so the caller gets Open3D's extra peak memory (build + traces) as the difference.
 """
 
 from __future__ import annotations
@@ -26,6 +28,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+
+def vm(field):
+    """A /proc/self/status memory field in bytes (None off Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
 
 
 def say(obj):
@@ -49,7 +63,7 @@ def main(argv=None) -> int:
     rays = {p.stem: o3d.core.Tensor(np.load(p)) for p in args.rays}
     one = o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32))
     invalid = o3d.t.geometry.RaycastingScene.INVALID_ID
-    say({"open3d": o3d.__version__, "numpy": np.__version__, "cores": os.cpu_count()})
+    say({"open3d": o3d.__version__, "numpy": np.__version__, "cores": os.cpu_count(), "rss_bytes": vm("VmRSS")})
     scene, prim = None, {}
     for line in sys.stdin:
         cmd = line.split()
@@ -72,7 +86,7 @@ def main(argv=None) -> int:
                 p = p.astype(np.int64)
                 p[p == invalid] = -1
                 np.save(args.out / f"{stem}.prim.npy", p)
-            say({"done": True})
+            say({"done": True, "peak_rss_bytes": vm("VmHWM")})
             return 0
         else:
             say({"error": f"bad command {line.strip()!r} (build first; trace one of {sorted(rays)})"})

@@ -5,11 +5,13 @@
     .venv/bin/python scripts/bench_trace.py --sizes 1m --memory-check   # + 10M rays through grid and BVH
     .venv/bin/python scripts/bench_trace.py --engines                   # the engine table (make bench-trace)
     .venv/bin/python scripts/bench_trace.py --scale 10m                 # Suzanne instanced 10x: build, trace, peak memory
+    .venv/bin/python scripts/bench_trace.py --engines --scenes suzanne10m --build-repeats 1 --repeats 3 --numpy-rays 524288
+                                                      # the engine table at 10M triangles, with peak memory
 
 The engine table (``--engines``): on 3 icospheres (983,040 triangles) and Suzanne at
 level 5 (1,007,616), 1M random rays and about 1M camera rays, raw embreex (a thread
 pool over 64k-ray chunks, and one thread), ``core.build(mesh, 'embree')`` with its
-defaults and with threads=1, the numpy BVH and grid, Blender's BVHTree loop (on a
+defaults, with threads=1 and with robust=False (Open3D's scene flags), the numpy BVH and grid, Blender's BVHTree loop (on a
 strided subset) and Open3D's ``RaycastingScene.cast_rays``, which runs in its own venv
 (``.venv-open3d``; scripts/bench_open3d.py) on the same rays saved to a temporary
 directory.  Columns: build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and
@@ -78,6 +80,7 @@ quiet machine: these numbers move with the load.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import gc
 import importlib.util
@@ -750,10 +753,11 @@ def versions():
 ENGINE_SCENES = {
     "icospheres": "3 geodesic spheres (frequency 128, 327,680 triangles each), radius 1, centres 2.5 apart on x",
     "suzanne": "Suzanne, Subdivision Surface level 5, evaluated by Blender",
+    "suzanne10m": "Suzanne at level 5 instanced 10x, rows of 5, 3 units apart (the --scale 10m scene)",
 }
 OPEN3D_PYTHON = ROOT / ".venv-open3d" / "bin" / "python"
 #: the rows of the engine table (keys for --tracers)
-ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "bvh", "grid", "bvhtree", "open3d")
+ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "embree_fast", "bvh", "grid", "bvhtree", "open3d")
 
 
 def icospheres_mesh():
@@ -766,7 +770,12 @@ def icospheres_mesh():
 
 
 def engine_scene(name, args):
-    mesh = icospheres_mesh() if name == "icospheres" else core.TriangleMesh(*monkey_triangles(5))
+    if name == "icospheres":
+        mesh = icospheres_mesh()
+    elif name == "suzanne10m":
+        mesh = instanced_monkey(10)
+    else:
+        mesh = core.TriangleMesh(*monkey_triangles(5))
     cam = camera_setup(mesh, args.rays)
     rays = {"random": uniform_rays(mesh, args.rays, args.seed), "camera": camera_rays(**cam)}
     return dict(name=name, what=ENGINE_SCENES[name], mesh=mesh, rays=rays, camera=cam)
@@ -872,6 +881,7 @@ class Open3DServer:
             self.close()
             raise Unavailable(hello["error"])
         self.name = f"Open3D {hello['open3d']} RaycastingScene.cast_rays (own venv, numpy {hello['numpy']})"
+        self.rss0, self.peak = hello.get("rss_bytes"), None
 
     def _read(self):
         line = self.proc.stdout.readline()
@@ -895,7 +905,7 @@ class Open3DServer:
         return self._ask(f"trace {kind}")["s"]
 
     def primitives(self):
-        self._ask("quit")
+        self.peak = self._ask("quit").get("peak_rss_bytes")
         self.proc.wait(timeout=60)
         return {k: np.load(self.tmp / f"{k}.prim.npy") for k in self.kinds}
 
@@ -917,6 +927,9 @@ def engine_rows(scene, args, tmp):
         ("raw1", lambda: RawEmbreex(mesh, 1)),
         ("embree", lambda: EngineProject(mesh, "embree", f"core.build(mesh, 'embree'), defaults ({core.accel.default_threads()} threads)")),
         ("embree1", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', threads=1)", threads=1)),
+        # Open3D's scene has no flags (RaycastingScene.cpp: rtcNewScene, no rtcSetSceneFlags);
+        # embreex's and ours are RTC_SCENE_FLAG_ROBUST: this row shows what that costs
+        ("embree_fast", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', robust=False)", robust=False)),
         ("bvh", lambda: EngineProject(mesh, "bvh", f"numpy BVH ({threads} threads)", threads=threads)),
         ("grid", lambda: EngineProject(mesh, "grid", f"numpy grid ({threads} threads)", threads=threads)),
         ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
@@ -927,7 +940,7 @@ def engine_rows(scene, args, tmp):
     caps = {"bvh": args.numpy_rays, "grid": args.numpy_rays, "bvhtree": args.loop_rays}
     tracers, rows = {}, {}
     for key, make in makers:
-        if key in ("raw", "raw1", "embree", "embree1") and not has_embree:
+        if key in ("raw", "raw1", "embree", "embree1", "embree_fast") and not has_embree:
             rows[key] = dict(name=key, error="embreex is not installed")
             continue
         try:
@@ -937,25 +950,35 @@ def engine_rows(scene, args, tmp):
     try:
         for key, tr in tracers.items():
             rows[key] = dict(name=tr.name, builds=[], traces={k: [] for k in scene["rays"]}, prim={}, rays={})
-        for _ in range(args.repeats):
+        for r in range(args.build_repeats or args.repeats):
             for key, tr in tracers.items():
-                rows[key]["builds"].append(tr.build())
+                # the first round also gives the peak memory
+                with PeakMemory(traced=False) if r == 0 and key != "open3d" else contextlib.nullcontext() as pm:
+                    rows[key]["builds"].append(tr.build())
+                if pm is not None:
+                    rows[key]["rss"] = pm.rss
                 if key == "raw":
                     rows[key].setdefault("splits", []).append(tr.split)
         for kind, (o, d) in scene["rays"].items():
-            for _ in range(args.repeats):
+            for r in range(args.repeats):
                 for key, tr in tracers.items():
                     sub = strided(len(o), caps[key]) if key in caps else slice(None)
                     oo, dd = o[sub], d[sub]
+                    rows[key]["rays"][kind] = len(oo)
                     if key == "open3d":
                         rows[key]["traces"][kind].append(tr.trace_named(kind))
-                    else:
+                        continue
+                    with PeakMemory(traced=False) if r == 0 else contextlib.nullcontext() as pm:
                         t0 = time.perf_counter()
                         rows[key]["prim"][kind] = tr.trace(oo, dd)
                         rows[key]["traces"][kind].append(time.perf_counter() - t0)
-                    rows[key]["rays"][kind] = len(oo)
+                    if pm is not None and pm.rss is not None and rows[key].get("rss") is not None:
+                        rows[key]["rss"] = max(rows[key]["rss"], pm.rss)
         if "open3d" in tracers:
-            rows["open3d"]["prim"] = tracers["open3d"].primitives()
+            o3 = tracers["open3d"]
+            rows["open3d"]["prim"] = o3.primitives()
+            if o3.peak is not None and o3.rss0 is not None:
+                rows["open3d"]["rss"] = max(0, o3.peak - o3.rss0)
     finally:
         if "open3d" in tracers:
             tracers["open3d"].close()
@@ -978,12 +1001,13 @@ def print_engine_tables(scene, rows):
                 "pinhole camera {width}x{height}, fov {fov_deg:g} deg, looking at the scene's centre".format(**scene["camera"]))
         print(f"\n### {scene['name']} ({scene['what']}): N = {mesh.triangle_count:,} triangles; {kind} rays, "
               f"M = {m:,} ({desc})\n")
-        print("| tracer | rays traced | build s | Mrays/s | x raw embreex | x Open3D | hit % | same triangle as raw embreex % |")
-        print("|---|--:|--:|--:|--:|--:|--:|--:|")
+        print("| tracer | rays traced | build s | Mrays/s | x raw embreex | x Open3D | hit % | same triangle as raw embreex % "
+              "| extra RSS MiB |")
+        print("|---|--:|--:|--:|--:|--:|--:|--:|--:|")
         ref = rows.get("raw", {}).get("prim", {}).get(kind)
         for key, r in rows.items():
             if "error" in r:
-                print(f"| {r['name']} | n/a: {r['error']} | | | | | | |")
+                print(f"| {r['name']} | n/a: {r['error']} | | | | | | | |")
                 continue
             prim = r["prim"][kind]
             same = "n/a"
@@ -991,7 +1015,8 @@ def print_engine_tables(scene, rows):
                 same = f"{100 * np.mean(prim == (ref if len(prim) == m else ref[strided(m, len(prim))])):.3f}"
             rps = rate(key, kind)
             print(f"| {r['name']} | {r['rays'][kind]:,} | {med(r['builds']):#.3g} | {rps / 1e6:#.3g} | {_ratio(rps, rate('raw', kind))}"
-                  f" | {_ratio(rps, rate('open3d', kind))} | {100 * np.mean(prim >= 0):.1f} | {same} |")
+                  f" | {_ratio(rps, rate('open3d', kind))} | {100 * np.mean(prim >= 0):.1f} | {same}"
+                  f" | {_mib(r['rss']) if r.get('rss') is not None else 'n/a'} |")
     raw, o3d = rows.get("raw", {}), rows.get("open3d", {})
     if "splits" in raw:
         g = med(s[0] for s in raw["splits"])
@@ -1020,6 +1045,8 @@ def engine_goals(scene, rows):
         ("project Embree (defaults) / Open3D, trace", ("embree", "open3d"), ">= 0.8x"),
         ("project Embree, 2 threads / 1 thread", ("embree", "embree1"), "reported (>= 1.7x)"),
         ("raw embreex, pool / 1 thread", ("raw", "raw1"), "reported"),
+        ("project Embree robust=False (Open3D's scene flags) / Open3D, trace", ("embree_fast", "open3d"), "reported"),
+        ("project Embree robust=False / robust (default), trace", ("embree_fast", "embree"), "reported"),
         ("numpy BVH / BVHTree loop", ("bvh", "bvhtree"), ">= 2x random, >= 1x camera"),
         ("numpy grid / BVHTree loop", ("grid", "bvhtree"), ">= 1x random"),
     ]
@@ -1040,10 +1067,13 @@ def engines_main(args):
     print(f"- date {datetime.datetime.now().isoformat(timespec='seconds')}; {os.cpu_count()} cores; load average at start "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print("- " + "; ".join(f"{k} {v}" for k, v in versions().items()))
-    print(f"- medians of {args.repeats} builds and {args.repeats} traces per tracer, run round-robin (one of each "
+    print(f"- medians of {args.build_repeats or args.repeats} builds and {args.repeats} traces per tracer, run round-robin (one of each "
           f"tracer per round); M = {args.rays:,} rays per batch (seed {args.seed}); the numpy BVH and grid trace an "
           f"evenly strided subset of {args.numpy_rays:,}, the BVHTree loop one of {args.loop_rays:,}; Open3D runs "
           f"in .venv-open3d (scripts/bench_open3d.py) on the same triangles and rays, driven round by round")
+    print("- extra RSS: the larger of the first build's and the first traces' peak resident memory over the RSS just "
+          "before each (VmHWM after a reset; a trace's figure comes on top of its resident structure); Open3D: its "
+          "process's VmHWM over its RSS with the mesh and rays loaded, so its builds and traces together")
     report = []
     for name in names:
         scene = engine_scene(name, args)
@@ -1135,7 +1165,10 @@ def main(argv=None) -> int:
     ap.add_argument("--engines", action="store_true",
                     help="the engine table instead: raw embreex, the project's Embree, numpy BVH and grid, the BVHTree "
                          "loop and Open3D on --scenes with --rays (default 1M) random and camera rays")
-    ap.add_argument("--scenes", default=",".join(ENGINE_SCENES), help="scenes of the engine table")
+    ap.add_argument("--scenes", default="icospheres,suzanne",
+                    help=f"scenes of the engine table, some of {','.join(ENGINE_SCENES)} (suzanne10m: 10M triangles, "
+                         f"about 10 minutes with --build-repeats 1 --repeats 3)")
+    ap.add_argument("--build-repeats", type=int, default=None, help="builds per tracer in the engine table (default: --repeats)")
     ap.add_argument("--tracers", default=None,
                     help="only these rows of the engine table, e.g. raw,raw1,embree,embree1,open3d (default: all of "
                          + ",".join(ENGINE_TRACERS) + ")")
