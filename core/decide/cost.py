@@ -12,9 +12,10 @@ each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relati
 residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
 small scenes.  ``model='power'`` fits T_B ~ c_B (N log2 N / X_REF)^p_B and
 t ~ c_R (log2 N / L_REF)^p_R by least squares on log times.  ``model='terms'`` (the
-default, issue 14) writes the numpy BVH's build as a sum of nonnegative costs in N,
-a + d (log2 N - 10) + b n + c n (log2 N - 16) with n = N / N_REF, which follows its U-shaped build per triangle from 500 to 1M triangles, and
-keeps the power model elsewhere.  The interval of each constant is the spread across the
+default, issue 14) writes the numpy BVH's and Embree's builds as sums of nonnegative costs
+in N, a + d (log2 N - 10) + b n + c n (log2 N - 16) with n = N / N_REF, which follow their
+build per triangle (U-shaped for the numpy BVH) from 500 to 1M triangles, and keeps the
+power model for the time per ray and for any structure not in ``BUILD_TERMS``.  The interval of each constant is the spread across the
 calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
@@ -300,12 +301,14 @@ def build_terms(n: float) -> dict[str, float]:
 #: build per triangle is U-shaped in N (15-20 us at 1k triangles, a fixed and a per-level
 #: cost; 1.7-2.2 us at 70k-300k; 2.8-3 us above 600k, where its arrays leave the cache):
 #: all four terms follow it (held-out build error 7-8%, against 41% for the power law), and
-#: dropping either 'log2n-10' or 'n(log2n-16)' doubles that.  A structure not named here
-#: keeps the power model's build: Embree's, for which the terms followed the builds closer
-#: (8-9% against 22%) but raised the held-out break-even error from 10-11% to 19-30% over
-#: two calibrations, because the power law's +15-22% on the build offsets the count models'
-#: overestimate of the gain per ray t_G - t_H; a better per-ray model should end that
-BUILD_TERMS = {"bvh": ("1", "log2n-10", "n", "n(log2n-16)")}
+#: dropping either 'log2n-10' or 'n(log2n-16)' doubles that.  Embree's build takes the same
+#: terms: they follow its builds closer than the power law (8-12% against 22-23%), whose
+#: +15-22% on the build had offset the grid's log-form count model's overestimate of t_G;
+#: with the grid's linear count model (``COUNT_FORMS``) the terms give the lower held-out
+#: break-even error against Embree (8.0% against 16.8%; 6.9% against 13.5% on an earlier
+#: report's truths)
+_FULL_TERMS = ("1", "log2n-10", "n", "n(log2n-16)")
+BUILD_TERMS = {"bvh": _FULL_TERMS, "embree": _FULL_TERMS}
 
 
 #: the spread of N the terms need (the largest calibration scene over the smallest): the
@@ -575,10 +578,16 @@ COUNT_TERMS = {
 }
 
 
-#: the form of each count model (``CountFit.form``): a power law in (1 + cells) for the
-#: grid (the lowest held-out error), nonnegative sums a + b log2 N for the structures (the
-#: power law in log2 N extrapolated worse and moved more between calibrations)
-COUNT_FORMS = {"grid": "log", "bvh": "linear", "embree": "linear"}
+#: the form of each count model (``CountFit.form``): nonnegative sums, a + b cells for the
+#: grid and a + b log2 N for the structures.  The grid was a power law in (1 + cells) while
+#: calibration timed 131,072-ray batches; with 524,288 (issue 14, third session) the sum
+#: follows the held-out meshes' grid time per ray twice as closely (median 5.7% against
+#: 10.8% on the 19 scenes of docs/report, 10.7% against 18.1% on an earlier report's truths;
+#: leave-one-out on the calibration scenes 14.2% against 13.7%), and the break-even error
+#: against the numpy BVH falls from 27.4% to 14.5% (26.9% to 15.8%) with no bias left
+#: (median error +5%, -6%); the power law in log2 N extrapolated worse and moved more between
+#: calibrations for the structures
+COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "linear"}
 
 
 def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None, reference=None) -> dict[str, CountFit]:
