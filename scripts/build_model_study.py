@@ -16,7 +16,6 @@ import json
 import math
 import sys
 from contextlib import contextmanager
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from _package import core_package  # noqa: E402
 core_package()
 
 from hybrid_raycast.core.decide import calfile, cost  # noqa: E402
+from hybrid_raycast.core.decide.evaluate import constants_apart, relative_difference as rel  # noqa: E402
 
 #: (label, model, build terms for 'terms' or None): the candidates of BENCHMARKS.md (issue 14)
 CANDIDATES = [
@@ -51,12 +51,6 @@ def build_terms(kind: str, names):
     finally:
         cost.BUILD_TERMS.clear()
         cost.BUILD_TERMS.update(old)
-
-
-def rel(a: float, b: float) -> float:
-    """|a - b| / mean in %."""
-    m = (abs(a) + abs(b)) / 2
-    return 100.0 * abs(a - b) / m if m > 0 else 0.0
 
 
 def med_abs(v) -> float:
@@ -97,27 +91,6 @@ def judge(cal, truths, kind: str, model: str, names) -> dict:
             "held_build_signed": 100.0 * float(np.median(held_b)), "held_be": med_abs(held_be), "fit": f}
 
 
-def refit(cal):
-    """The calibration refitted with the package's default model and count models."""
-    return replace(cal, fits=cost.fit(cal.scenes, tuple(cal.fits), spread=cal.spread), model=cost.DEFAULT_MODEL,
-                   counts=cost.fit_counts(cal.scenes, ("grid",) + tuple(cal.fits), cal.spread))
-
-
-def constants_apart(a, b) -> dict[str, float]:
-    """Each constant's |a - b| / mean between two calibrations fitted with the same model."""
-    out = {}
-    for k, f in a.fits.items():
-        if k in b.fits:
-            ca, cb = cost.fit_constants(f, a.model), cost.fit_constants(b.fits[k], b.model)
-            out.update({f"{k} {n}": rel(v, cb[n]) for n, v in ca.items() if n in cb})
-    for k, f in a.counts.items():
-        g = b.counts.get(k)
-        if g is not None and (g.terms, g.form, g.refs) == (f.terms, f.form, f.refs):
-            cb = g.constants()
-            out.update({f"{k} per ray {n}": rel(v, cb[n]) for n, v in f.constants().items()})
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("calibrations", nargs="+", help="calibration JSON files (records are refitted)")
@@ -148,7 +121,7 @@ def main(argv=None) -> int:
                 line += f" | {max(apart):.1f}" if apart else " | -"
             print(f"{label:34s} | {line}")
     if len(cals) == 2:
-        a, b = (refit(c) for c in cals)
+        a, b = (c.refitted() for c in cals)
         apart = constants_apart(a, b)
         print(f"\nconstants of the default model ('{cost.DEFAULT_MODEL}'), |a - b| / mean in %:")
         for n, v in apart.items():

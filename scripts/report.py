@@ -58,7 +58,7 @@ from hybrid_raycast.core import build, load_obj, scenes as scene_lib  # noqa: E4
 from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import cost as calib  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
-    CALIBRATION_FORMAT, MODELS, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate, fit, load,
+    CALIBRATION_FORMAT, MODELS, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate, load,
     measure_break_even, time_trace, warm_up,
 )
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
@@ -812,9 +812,7 @@ def get_calibration(args):
         # an older file's constants are stated as it stated them: refit (the records are kept)
         log(f"calibration fitted with '{cal.model}' (format {cal.version.get('format')}): refitting with the default "
             f"model '{calib.DEFAULT_MODEL}'")
-        counts = calib.fit_counts(cal.scenes, ("grid",) + tuple(cal.fits), cal.spread) if cal.counts else {}
-        cal = dataclasses.replace(cal, fits=fit(cal.scenes, tuple(cal.fits), model=calib.DEFAULT_MODEL, spread=cal.spread),
-                                  model=calib.DEFAULT_MODEL, counts=counts)
+        cal = cal.refitted(calib.DEFAULT_MODEL)
         how += f", refitted with '{cal.model}'"
     if not any(r.grid_samples for r in cal.scenes):
         log("warning: the calibration holds no grid samples: the plan's grid estimate is uncorrected (ratio 1)")
@@ -838,21 +836,8 @@ def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> di
     ``CountFit.constants``: times at a reference size, slopes, exponents), and (what a plan
     uses) the per-ray times they predict on the evaluated scenes' own work counts and the
     break-evens they give."""
-    def rel(a, b):
-        m = (abs(a) + abs(b)) / 2
-        return 100.0 * abs(a - b) / m if m > 0 else 0.0
-
-    consts = {}
-    for k, f in cal.fits.items():
-        g = cal2.fits.get(k)
-        if g is not None and cal2.model == cal.model:
-            ca, cb = calib.fit_constants(f, cal.model), calib.fit_constants(g, cal.model)
-            consts.update({f"{k} {name}": rel(v, cb[name]) for name, v in ca.items() if name in cb})
-    for k, f in cal.counts.items():
-        g = cal2.counts.get(k)
-        if g is not None and g.terms == f.terms and g.form == f.form and g.refs == f.refs:
-            cb = g.constants()
-            consts.update({f"{k} per ray {name}": rel(v, cb[name]) for name, v in f.constants().items()})
+    rel = rep.relative_difference
+    consts = rep.constants_apart(cal, cal2)
     preds, bes = {}, []
     for s in scenes:
         w = s.extra.get("work")

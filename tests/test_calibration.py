@@ -406,3 +406,27 @@ def test_a_terms_calibration_round_trips_and_describes_its_constants(tmp_path):
         assert back.estimate("bvh", n) == cal.estimate("bvh", n)
     text = back.describe()
     assert "terms model" in text and "(n = N / 65,536, N >= 500)" in text and "ms at N = 65,536" in text, text
+
+
+def test_refitted_fits_the_same_records_again_and_constants_apart_compares_them():
+    """``Calibration.refitted`` is ``fit`` of its own records with another model (no new
+    timing); two calibrations fitted alike differ by 0 in every constant, and a calibration
+    whose builds all took 1.5x as long differs by 100 |1.5 - 1| / 1.25 = 40% in the build at
+    the reference size and not at all in the exponents."""
+    from hybrid_raycast.core.decide.evaluate import constants_apart, relative_difference
+
+    recs = [SceneRecord(f"s{n}", n, 1000, {"bvh": Measurement(0.04 + 0.12 * n / 65536 * (1 + 0.1 * math.log2(n / 500)),
+                                                                1000 * 1e-7 * math.log2(n), 1000)})
+            for n in (500, 2000, 8000, 30000, 120000, 500000, 1000000)]
+    power = Calibration(fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
+    terms = power.refitted("terms")
+    assert terms.model == "terms" and terms.scenes is power.scenes and terms.counts == {}
+    assert terms.fits["bvh"] == fit(recs, ("bvh",), model="terms")["bvh"]
+    assert set(constants_apart(power, power.refitted("power")).values()) == {0.0}
+    assert constants_apart(power, terms) == {}  # another model's constants are not comparable
+    slow = [SceneRecord(r.name, r.triangles, r.rays, {"bvh": Measurement(1.5 * r.kinds["bvh"].build_time,
+                                                                         r.kinds["bvh"].trace_time, r.rays)})
+            for r in recs]
+    apart = constants_apart(power, Calibration(fit(slow, ("bvh",), model="power"), scenes=slow, model="power"))
+    assert apart["bvh build at N_REF"] == pytest.approx(relative_difference(1.0, 1.5)) == pytest.approx(40.0)
+    assert apart["bvh p_B"] == pytest.approx(0.0, abs=1e-9) and apart["bvh per ray at N_REF"] == pytest.approx(0.0, abs=1e-9)

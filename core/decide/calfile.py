@@ -17,14 +17,14 @@ import os
 import platform
 import re
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import atomic_path
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord,
-                   Prior, describe_fit, prior)
+                   Prior, describe_fit, fit, fit_counts, prior)
 
 #: bump when the JSON layout or the meaning of a field changes.  3 (issue 14): constants
 #: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
@@ -186,6 +186,14 @@ class Calibration:
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------
+    def refitted(self, model: str = DEFAULT_MODEL) -> "Calibration":
+        """The same records fitted again with ``model`` and the current count models (no new
+        timing): an older file's constants become what this package states and predicts.
+        A file made before count models keeps none."""
+        kinds = tuple(self.fits)
+        counts = fit_counts(self.scenes, ("grid",) + kinds, self.spread) if self.counts else {}
+        return replace(self, fits=fit(self.scenes, kinds, model=model, spread=self.spread), model=model, counts=counts)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["spread"] = list(self.spread)

@@ -138,6 +138,34 @@ def relative_error(r_est: float, r_c: float) -> float:
     return 100.0 * (r_est - r_c) / r_c
 
 
+def relative_difference(a: float, b: float) -> float:
+    """``100 |a - b| / mean(|a|, |b|)`` in percent: how far apart two measurements of one
+    quantity are, neither taken as the reference (0 when both are 0)."""
+    m = (abs(a) + abs(b)) / 2
+    return 100.0 * abs(a - b) / m if m > 0 else 0.0
+
+
+def constants_apart(a, b) -> dict[str, float]:
+    """Each constant two calibrations fitted, as the model states it (``cost.fit_constants``,
+    ``CountFit.constants``: times at a reference size, slopes, exponents), and its
+    ``relative_difference``; constants of fits that differ in model, terms, form or
+    reference are not comparable and left out."""
+    from .cost import fit_constants
+
+    out = {}
+    if a.model == b.model:
+        for k, f in a.fits.items():
+            if k in b.fits:
+                ca, cb = fit_constants(f, a.model), fit_constants(b.fits[k], a.model)
+                out.update({f"{k} {n}": relative_difference(v, cb[n]) for n, v in ca.items() if n in cb})
+    for k, f in a.counts.items():
+        g = b.counts.get(k)
+        if g is not None and (g.terms, g.form, g.refs) == (f.terms, f.form, f.refs):
+            cb = g.constants()
+            out.update({f"{k} per ray {n}": relative_difference(v, cb[n]) for n, v in f.constants().items()})
+    return out
+
+
 def never_agreement(pairs) -> dict:
     """Over (R_est, R_C) pairs: how often both say 'never' (the grid always wins), and how
     often only one of them does (an unbounded error the sums leave out)."""
