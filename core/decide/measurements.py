@@ -37,7 +37,9 @@ GRID_LARGE_RAYS = 1 << 19
 #: builds and traces of every structure per calibration scene, interleaved; the record
 #: keeps the medians (on this 2-core VM one trace moves by 20-40% between runs)
 CALIBRATION_REPEATS = 3
-#: sample rays on which calibration counts the grid's per-ray work, as a plan does
+#: sample rays on which calibration counts the grid's per-ray work, as a plan does on its K
+#: (``plan.DEFAULT_SAMPLES``, 8,192): the counts are means over the rays, the same for any K
+#: but for their noise, and the fit gets the less noisy means of twice as many rays
 WORK_SAMPLES = 16384
 
 
