@@ -130,10 +130,10 @@ def warm_up(kinds, *, threads=None, configs=None):
 
 #: a round of measurements is taken again when other processes used more than this share
 #: of the machine's CPU time while it ran (``OthersShare``).  On this 2-core VM two
-#: calibrations in a row, with other sessions' work at the lowest priority running beside
-#: them, put every build 13% and every time per ray 11% apart (medians over the scenes;
-#: issue 14), so lowest priority alone does not keep a measurement clean.  With nothing
-#: else running the share stays below 1%; a desktop's idle background is a few %
+#: calibrations in a row, with other work at the lowest priority running beside them part
+#: of the time, gave builds a median 13% and times per ray 11% apart (issue 14): the lowest
+#: priority alone does not keep a measurement clean, as the others still run in the cores'
+#: idle moments.  With nothing else running the share stays below 1%
 QUIET_SHARE = 0.10
 #: how a calibration's note that its measurements stayed disturbed ends (``quiet_notes``)
 BUSY_ADVICE = "calibrate again on a quiet machine"
