@@ -166,36 +166,6 @@ def test_others_share_sees_a_process_that_spins_beside_a_sleeping_one():
     assert 0.6 / (os.cpu_count() or 1) <= busy.share <= 1.0, busy.share
 
 
-def test_measure_builds_a_quick_structure_again_and_keeps_the_median_build(monkeypatch):
-    """With a build budget, builds repeat until their times add up to it (at most BUILD_MAX);
-    the Measurement's build is their median and the trace runs once, on the last build."""
-    from hybrid_raycast.core import scenes as S
-    from hybrid_raycast.core.decide import measurements as M
-
-    times = iter([0.05, 0.01, 0.03, 0.20, 0.02] + [0.001] * 20)
-    built, traced = [], []
-
-    class Fake:
-        threads = 1
-
-        def __init__(self):
-            self.build_time = next(times)
-            built.append(self)
-
-    monkeypatch.setattr(M, "build", lambda mesh, kind, **cfg: Fake())
-    monkeypatch.setattr(M, "time_trace", lambda acc, o, d: (traced.append(acc), 0.5))
-    mesh, o, d = S.sphere(80), np.zeros((4, 3)), np.ones((4, 3))
-    m = M.measure(mesh, "bvh", o, d, build_budget=0.25)  # 0.05 + 0.01 + 0.03 + 0.20 >= 0.25 after 4
-    assert len(built) == 4 and m.build_time == pytest.approx(0.04) and m.trace_time == 0.5
-    assert traced == [built[-1]]
-    built.clear()
-    M.measure(mesh, "bvh", o, d, build_budget=10.0)  # budget never reached: BUILD_MAX builds
-    assert len(built) == M.BUILD_MAX
-    built.clear()
-    M.measure(mesh, "bvh", o, d)  # no budget: one build
-    assert len(built) == 1
-
-
 def test_measure_break_even_takes_medians_of_the_repeats_and_reports_their_spread():
     from hybrid_raycast.core import scenes as S
     from hybrid_raycast.core.decide import measure_break_even

@@ -60,31 +60,19 @@ def time_trace(accel: Accel, origins, directions, tmin=0.0, tmax=np.inf):
     return hits, time.perf_counter() - t0
 
 
-#: seconds of building per measurement: a structure that builds faster is built again (up to
-#: BUILD_MAX times) and its median build kept.  A build of a few thousand triangles takes
-#: 2-40 ms, within which one page-fault storm or preemption moves it by half (two calibrations
-#: in a row put the numpy BVH's and Embree's builds at 16,384 triangles 13-48% apart); a
-#: 1M-triangle build (1-3 s) is still built once a round
-BUILD_BUDGET = 0.25
-BUILD_MAX = 9
-
-
-def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None, config=None,
-            build_budget: float = 0.0) -> Measurement:
+def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None, config=None) -> Measurement:
     """Build ``kind`` over ``mesh`` and trace the rays through it: one Measurement.
 
-    build_budget: build again while the builds so far took less than this many seconds
-    (at most BUILD_MAX builds); the Measurement's build time is their median."""
+    One build a measurement, as a plan's structure is built once: builds repeated back to
+    back reuse the memory the previous one freed, and a median of up to nine of them put a
+    20k-triangle scene's numpy BVH build at 34-38 ms where single builds take 48-68 ms
+    (issue 14; the held-out break-even error rose from 12-14% to 23% with it)."""
     cfg = dict(config or {})
     if threads is not None:
         cfg.setdefault("threads", threads)
-    builds, accel = [], None
-    while not builds or (sum(builds) < build_budget and len(builds) < BUILD_MAX):
-        accel = None  # free the previous build first: one structure in memory at a time
-        accel = build(mesh, kind, **cfg)
-        builds.append(float(accel.build_time))
+    accel = build(mesh, kind, **cfg)
     _, dt = time_trace(accel, origins, directions)
-    return Measurement(float(np.median(builds)), float(dt), int(len(origins)), int(accel.threads))
+    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads))
 
 
 def unavailable_reason(kind: str) -> str | None:
@@ -381,7 +369,6 @@ def calibrate(
     repeats: int = CALIBRATION_REPEATS,
     work_samples: int = WORK_SAMPLES,
     quiet: float | None = QUIET_SHARE,
-    build_budget: float = BUILD_BUDGET,
 ) -> Calibration:
     """Measure every structure in ``kinds`` on each scene and fit the model.
 
@@ -396,8 +383,6 @@ def calibrate(
     quiet: a round of a scene's measurements during which other processes took more than
     this share of the machine's CPU is taken again (``interleaved``; None: never); the
     calibration's notes say how many were, and the largest share in the rounds kept.
-    build_budget: each structure's builds in a round add up to at least this many seconds
-    (``measure``), so a small scene's build is a median of several.
     """
     from .. import scenes as scene_lib
     from ..rays import uniform_rays
@@ -448,8 +433,7 @@ def calibrate(
                     go, gd = uniform_rays(mesh, GRID_LARGE_RAYS, seed=gseed)
                 jobs[kind] = (lambda go=go, gd=gd, cfg=cfg: measure(mesh, "grid", go, gd, threads=threads, config=cfg))
             else:
-                jobs[kind] = (lambda kind=kind, cfg=cfg: measure(mesh, kind, origins, directions, threads=threads,
-                                                                 config=cfg, build_budget=build_budget))
+                jobs[kind] = (lambda kind=kind, cfg=cfg: measure(mesh, kind, origins, directions, threads=threads, config=cfg))
         runs = interleaved(jobs, repeats, quiet=quiet, shares=shares)
         rec.kinds = {k: median_measurement(v) for k, v in runs.items()}
         records.append(rec)
