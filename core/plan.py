@@ -46,18 +46,10 @@ from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
 from .decide.measurements import prepare_mesh, available_kinds, time_trace, unavailable_reason
 from .decide.rule import REUSES_SAMPLES, choose
-from .decide.work import grid_work
+from .decide.work import DEFAULT_SAMPLES, grid_work
 from .hits import Hits
 from .mesh import TriangleMesh
 
-#: default number of sample rays traced through the grid.  The estimate reads the
-#: sample's work counts, not its time: a mean over K rays whose relative standard error is
-#: about 1/sqrt(K) (1.1% at 8,192).  The report's sweep (six held-out scenes, density 1)
-#: gave median break-even errors of 11.3%, 12.8% and 14.0% at K = 4,096, 8,192 and
-#: 16,384; the estimate's cost at 1e6 rays (bunny, beetle-alt, cow; locked run
-#: 2026-12-01 22:34) 1.6-2.8%, 2.4-3.7% and 3.8-6.1%.  8,192 keeps the cost under the
-#: issue's 5% with a margin for repeatability on small scenes.
-DEFAULT_SAMPLES = 8192
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
 

@@ -81,6 +81,8 @@ def apply_calibration(scene, result) -> list[tuple[str, str]]:
     msgs = [("INFO", f"calibrated {', '.join(cal.fits)} in {cal.duration_s:.1f} s; saved to {result['path']}")]
     if "embree" not in result["kinds"]:
         msgs.insert(0, ("WARNING", "embreex cannot be imported here: calibrated the BVH only"))
+    # other programs kept the CPU busy through the retakes: the constants may be slow
+    msgs += [("WARNING", n) for n in cal.notes if n.endswith(core.decide.measurements.BUSY_ADVICE)]
     if scene is not None and getattr(scene, "hybrid_raycast", None) is not None and scene.hybrid_raycast.has_results:
         msgs.append(("INFO", "run Analyze again to decide with the new constants"))
     return msgs

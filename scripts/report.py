@@ -58,8 +58,8 @@ from hybrid_raycast.core import build, load_obj, scenes as scene_lib  # noqa: E4
 from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import cost as calib  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
-    CALIBRATION_FORMAT, MODELS, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate, load,
-    measure_break_even, time_trace, warm_up,
+    CALIBRATION_FORMAT, MODELS, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate,
+    load, measure_break_even, time_trace, warm_up,
 )
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
@@ -155,7 +155,7 @@ def measure_scene(name, group, mesh, cal, args, kinds):
     estimate costs when its samples are K of them (``reuse_estimate_time``)."""
     n = mesh.triangle_count
     o, d = uniform_rays(mesh, args.rays, seed=args.seed)
-    be = measure_break_even(mesh, (o, d), ("grid",) + tuple(kinds), repeats=args.repeats)
+    be = measure_break_even(mesh, (o, d), ("grid",) + tuple(kinds), repeats=args.repeats, quiet=QUIET_SHARE)
     grid, structs = be.structures["grid"], {k: be.structures[k] for k in kinds}
     g_build, g_time = be.measurements["grid"].build_time, be.measurements["grid"].trace_time
     measured = {k: rep.Cost(be.measurements[k].build_time, be.measurements[k].per_ray) for k in kinds}
@@ -183,7 +183,8 @@ def measure_scene(name, group, mesh, cal, args, kinds):
                                      **{k: cal.estimate(k, n).per_ray for k in kinds}},
                "reuse_plan": {"workload_samples": pw.workload_samples, "break_even": pw.candidates["bvh"].break_even,
                               "grid_per_ray": pw.grid_per_ray, "estimate_time": pw.estimate_time},
-               "threads": {"grid": grid.threads, **{k: a.threads for k, a in structs.items()}}},
+               "threads": {"grid": grid.threads, **{k: a.threads for k, a in structs.items()}},
+               "measurement_notes": be.notes},
     )
     return s, (o, d), grid, structs
 
@@ -474,8 +475,12 @@ def write_markdown(path: Path, R: dict):
                                                       for name, v in ests.items()) + ".\n")
     crep = summ.get("calibration_repeatability")
     if crep:
-        w("Two calibrations in a row, each constant's difference |a - b| / mean in %: "
+        w("Two calibrations in a row, each constant's difference |a - b| / mean in %, as the model states it "
+          "(each build at 1,024 to 1,048,576 triangles, each time per ray at two counts): "
           + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep["constants"].items())
+          + ". The same as the file stores the coefficients (the four build terms trade against each other, "
+          "a slope against an intercept): "
+          + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep.get("coefficients", {}).items())
           + ". Per-ray times they predict on the evaluated scenes' counts, median (max) difference: "
           + ", ".join(f"{k} {fnum(v['median'], 1)}% ({fnum(v['max'], 1)}%)" for k, v in crep["per_ray"].items()) + ".\n")
     # -- per scene
@@ -832,10 +837,10 @@ def cal_repeats(args) -> dict:
 
 def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> dict:
     """How two calibrations in a row differ: each constant's relative difference
-    |a - b| / mean (the constants as the model states them, ``cost.fit_constants`` and
-    ``CountFit.constants``: times at a reference size, slopes, exponents), and (what a plan
-    uses) the per-ray times they predict on the evaluated scenes' own work counts and the
-    break-evens they give."""
+    |a - b| / mean, as the model states them (``evaluate.constants_apart``: builds at
+    ``cost.BUILD_ANCHORS``, per-ray times at ``cost.COUNT_ANCHORS``) and as the file stores
+    the coefficients, and (what a plan uses) the per-ray times they predict on the
+    evaluated scenes' own work counts and the break-evens they give."""
     rel = rep.relative_difference
     consts = rep.constants_apart(cal, cal2)
     preds, bes = {}, []
@@ -850,8 +855,11 @@ def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> di
                                 c.count_per_ray("bvh", s.triangles, w)[0]) for c in (cal, cal2)]
             if all(math.isfinite(x) for x in r):
                 bes.append(max(r) / min(r))
+    coefs = rep.constants_apart(cal, cal2, stated=False)
     return {"constants": consts, "max_constant": max(consts.values(), default=math.nan),
             "median_constant": median_finite(list(consts.values())),
+            "coefficients": coefs, "max_coefficient": max(coefs.values(), default=math.nan),
+            "median_coefficient": median_finite(list(coefs.values())),
             "per_ray": {k: {"median": median_finite(v), "max": max(v)} for k, v in preds.items()},
             "break_even_ratio": {"median": median_finite(bes), "max": max(bes, default=math.nan), "scenes": len(bes)}}
 
@@ -999,9 +1007,12 @@ def repeat_rows(summ: dict) -> list[dict]:
 def calibration_row(c: dict) -> dict:
     """The headline row of two calibrations in a row."""
     ratio = c["break_even_ratio"]
-    return {"measure": "two calibrations in a row: largest difference of a constant (median); break-evens they give, "
-                       "max / min, median (max)", "goal": "≤ 10%",
+    return {"measure": "two calibrations in a row: largest difference of a constant as the model states it (median); "
+                       "of a stored coefficient (median); break-evens they give, max / min, median (max)",
+            "goal": "≤ 10%",
             "value": f"{fnum(c['max_constant'], 1, None)} ({fnum(c['median_constant'], 1, None)}); "
+                     f"{fnum(c.get('max_coefficient', math.nan), 1, None)} "
+                     f"({fnum(c.get('median_coefficient', math.nan), 1, None)}); "
                      f"{fnum(ratio['median'], 3)} ({fnum(ratio['max'], 2)})",
             "met": "yes" if c["max_constant"] <= 10 else "**no**"}
 
@@ -1125,6 +1136,7 @@ def main(argv=None):
         mesh = make()
         log(f"scene {i + 1}/{len(scene_list)}: {name} ({mesh.triangle_count:,} triangles, {group})")
         s, rays, grid, structs = measure_scene(name, group, mesh, cal, args, kinds)
+        notes += [f"{name}: {x}" for x in s.extra["measurement_notes"]]
         rc, re_ = rep.true_break_even(s), rep.estimated_break_even(s)
         log(f"  grid {s.grid.build * 1e3:.1f} ms {s.grid.per_ray * 1e6:.2f} us/ray (estimate {s.grid_estimate_per_ray * 1e6:.2f} "
             f"= sample {s.grid_sample_per_ray * 1e6:.2f} x {fnum(s.grid_sample_ratio, 2)}); "
@@ -1141,7 +1153,9 @@ def main(argv=None):
     models = model_comparison(results, cal)
     summary["count_models"] = {k: count_comparison(cal, k, args.samples) for k in kinds}
     if args.calibrations >= 2:
-        summary["calibration_repeatability"] = calibration_repeatability(cal, calibrate_again(args, cal), results)
+        cal2 = calibrate_again(args, cal)
+        notes += [f"the second calibration: {x}" for x in cal2.notes]
+        summary["calibration_repeatability"] = calibration_repeatability(cal, cal2, results)
         summary["headline"].append(calibration_row(summary["calibration_repeatability"]))
     best_model, decision = decide_model(models, cal.model, calib.DEFAULT_MODEL)
     sweep = None

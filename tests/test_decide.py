@@ -97,6 +97,75 @@ def test_interleaved_rotates_the_order_each_round_and_keeps_each_jobs_results_in
     assert out == {"a": [1, 6, 8], "b": [2, 4, 9], "c": [3, 5, 7]}
 
 
+class _FakeShares:
+    """Stands in for OthersShare: each ``with`` block reports the next share of a list."""
+
+    def __init__(self, shares):
+        self.shares = list(shares)
+
+    def __call__(self):
+        return self
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.share = self.shares.pop(0)
+        return False
+
+
+def test_interleaved_takes_a_disturbed_round_again_and_keeps_the_least_disturbed(monkeypatch):
+    """A round during which other processes took more than ``quiet`` of the CPU is run again
+    (up to ``retries`` times); the quietest take is kept and its share and takes recorded."""
+    from hybrid_raycast.core.decide import measurements as M
+
+    log = []
+    jobs = {k: (lambda k=k: log.append(k) or len(log)) for k in ("a", "b")}
+    # round 0: 0.3, then 0.02 (kept, 2 takes); round 1: 0.5, 0.2, 0.4 (retries spent: 0.2 kept)
+    monkeypatch.setattr(M, "OthersShare", _FakeShares([0.3, 0.02, 0.5, 0.2, 0.4]))
+    shares = []
+    out = M.interleaved(jobs, 2, quiet=0.1, retries=2, shares=shares)
+    assert log == ["a", "b", "a", "b", "b", "a", "b", "a", "b", "a"]
+    assert out == {"a": [3, 8], "b": [4, 7]}
+    assert shares == [(0.02, 2), (0.2, 3)]
+    notes = M.quiet_notes(shares, 0.1)
+    assert len(notes) == 2 and "2 of 2 measurement rounds were taken again (3 retakes)" in notes[0]
+    assert "1 of 2 rounds stayed busier" in notes[1] and "20%" in notes[1]
+    # quiet=None: one take a round, whatever the share; an unreadable share is never retaken
+    monkeypatch.setattr(M, "OthersShare", _FakeShares([0.9, None]))
+    shares = []
+    assert M.interleaved(jobs, 2, shares=shares) == {"a": [11, 14], "b": [12, 13]}
+    assert shares == [(0.9, 1), (None, 1)]
+    assert M.quiet_notes([(None, 1)], 0.1)[0].startswith("other processes' share of the CPU could not be read")
+    assert M.quiet_notes([(0.01, 1)], 0.1) == []
+
+
+@pytest.mark.skipif(not Path("/proc/stat").exists(), reason="OthersShare reads Linux's /proc/stat")
+def test_others_share_sees_a_process_that_spins_beside_a_sleeping_one():
+    """While this process sleeps and a child spins, the child's CPU is other processes'
+    share: about one core of the machine's (1 / cores), never more than all of it; a block
+    shorter than a few counter ticks has no figure."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from hybrid_raycast.core.decide.measurements import OthersShare
+
+    with OthersShare() as short:
+        pass
+    assert short.share is None
+    child = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 3: pass"])
+    try:
+        time.sleep(0.3)  # the child is running
+        with OthersShare() as busy:
+            time.sleep(0.6)
+    finally:
+        child.kill()
+        child.wait()
+    assert 0.6 / (os.cpu_count() or 1) <= busy.share <= 1.0, busy.share
+
+
 def test_measure_break_even_takes_medians_of_the_repeats_and_reports_their_spread():
     from hybrid_raycast.core import scenes as S
     from hybrid_raycast.core.decide import measure_break_even
@@ -143,6 +212,18 @@ def test_grid_work_counts_cells_and_references_on_a_hand_grid():
     assert (lean.cells, lean.refs, lean.hit, lean.length) == (both.cells, None, both.hit, both.length)
 
 
+def test_a_one_count_model_is_stated_at_its_anchor_counts():
+    """A linear model of one count states its time per ray at COUNT_ANCHORS (5 and 40 cells:
+    1e-7 + 2e-8 x 5 and 1e-7 + 2e-8 x 40), and keeps its coefficients as stored."""
+    rows = [(1 << n, {"cells": c}, 1e-7 + 2e-8 * c) for n, c in ((10, 4), (12, 9), (16, 20), (20, 50))]
+    f = cost.CountFit.fit(rows, ("1", "cells"))
+    assert cost.COUNT_ANCHORS["cells"] == (5.0, 40.0)
+    assert f.constants() == pytest.approx({"at cells = 5": 2e-7, "at cells = 40": 9e-7}, rel=1e-9)
+    assert f.coefficients() == pytest.approx({"at ref": 1e-7 + 2e-8 * 15, "x cells": 2e-8}, rel=1e-9)
+    for x in (5.0, 40.0):
+        assert f.predict(1 << 12, {"cells": x}) == pytest.approx(f.constants()[f"at cells = {x:g}"], rel=1e-12)
+
+
 def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, 1e-7 + 2e-8 * c + 5e-9 * f)
             for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]
@@ -151,6 +232,7 @@ def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     assert f.refs == (0.0, 15.0, 0.0)
     assert f.coef == pytest.approx((1e-7 + 2e-8 * 15, 2e-8, 5e-9), rel=1e-9)
     assert f.constants() == pytest.approx({"at ref": 4e-7, "x cells": 2e-8, "x refs": 5e-9}, rel=1e-9)
+    assert f.coefficients() == f.constants()  # two counts: stated by its coefficients
     assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
     assert f.predict(1 << 20, {"cells": 100, "refs": 200}) == pytest.approx(1e-7 + 2e-6 + 1e-6, rel=1e-9)
     raw = cost.CountFit.fit(rows, ("1", "cells", "refs"), reference={})  # format 2: stated at zero counts
@@ -373,9 +455,27 @@ def test_terms_model_recovers_exact_constants_and_estimates_the_formula():
     # per ray: the power model's, stated at log2 N = 16
     assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
     assert est(f, "bvh", 1 << 12).per_ray == pytest.approx(1e-7 * 12 ** 0.8, rel=1e-9)
+    # the constants are the builds at the anchor sizes, by hand: at 1,024 triangles
+    # log2 N - 10 = 0, n = 1/64, log2 N - 16 = -6; at 1,048,576 they are 10, 16 and 4
+    anchors = {f"build at {n:,}": _terms_law(n) for n in cost.BUILD_ANCHORS}
+    assert anchors["build at 1,024"] == pytest.approx(0.015 + 0.12 / 64 - 0.015 * 6 / 64, rel=1e-12)
+    assert anchors["build at 1,048,576"] == pytest.approx(0.015 + 0.04 + 0.12 * 16 + 0.015 * 16 * 4, rel=1e-12)
     assert cost.fit_constants(f, "terms") == pytest.approx(
-        {"build 1": 0.015, "build log2n-10": 0.004, "build n": 0.12, "build n(log2n-16)": 0.015,
-         "build at N_REF": 0.159, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
+        {**anchors, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
+    assert cost.fit_constants(f, "terms", per_ray=False) == pytest.approx(anchors, rel=1e-9)
+    # the file's coefficients, for a report that shows how the fit trades them
+    assert cost.fit_coefficients(f, "terms") == pytest.approx(
+        {"build 1": 0.015, "build log2n-10": 0.004, "build n": 0.12, "build n(log2n-16)": 0.015}, rel=1e-9)
+
+
+def test_build_anchors_determine_the_terms_model():
+    """Four builds at BUILD_ANCHORS are the 'terms' model: its four regressors at the four
+    sizes form an invertible matrix, so stating the times there loses nothing."""
+    x = np.array([[cost.build_terms(n)[t] for t in cost.BUILD_TERMS["bvh"]] for n in cost.BUILD_ANCHORS])
+    assert len(cost.BUILD_ANCHORS) == len(cost.BUILD_TERMS["bvh"])
+    assert abs(np.linalg.det(x)) > 1e-6
+    coef = np.linalg.solve(x, [_terms_law(n) for n in cost.BUILD_ANCHORS])
+    assert coef == pytest.approx([0.015, 0.004, 0.12, 0.015], rel=1e-9)
 
 
 def test_terms_model_estimates_a_scene_below_the_calibration_as_the_smallest_scene():

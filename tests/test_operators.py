@@ -210,6 +210,18 @@ def test_calibrate_writes_the_injected_file_and_analyze_uses_it(fresh, addon):
     assert str(path) in props().calibration_message
 
 
+def test_a_calibration_that_stayed_disturbed_is_reported_as_a_warning(addon):
+    """The busy-machine note of a calibration (other programs took the CPU through every
+    retake) reaches the user as a WARNING; its other notes do not."""
+    mod = addon.operators.calibrate
+    m = addon.core.decide.measurements
+    busy = m.quiet_notes([(0.4, 1 + m.QUIET_RETRIES), (0.01, 1)], m.QUIET_SHARE)
+    cal = addon.core.decide.Calibration({}, notes=["embree skipped: not here"] + busy)
+    msgs = mod.apply_calibration(None, {"calibration": cal, "path": "/tmp/x.json", "kinds": ("bvh", "embree")})
+    warnings = [text for level, text in msgs if level == "WARNING"]
+    assert warnings == [busy[-1]] and "40%" in busy[-1] and busy[-1].endswith(m.BUSY_ADVICE)
+
+
 def test_calibrate_to_an_unwritable_place_fails_cleanly(fresh, addon, tmp_path, monkeypatch):
     blocker = tmp_path / "a_file"
     blocker.write_text("x")

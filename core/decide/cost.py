@@ -373,20 +373,45 @@ MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estim
           "power": (_fit_power, _estimate_power), "terms": (_fit_terms, _estimate_terms)}
 
 
-def fit_constants(f: KindFit, model: str) -> dict[str, float]:
+#: the scene sizes a 'terms' build is stated at (issue 14): its time at each, four sizes for
+#: its four coefficients (the terms at these sizes form an invertible matrix, so the four
+#: times are the model), all within the calibration set's 500 to 1M triangles.  The
+#: coefficients themselves are not constants two calibrations can agree on: over that range
+#: the four regressors are nearly collinear, so the fit trades one against another (two
+#: calibrations in a row put 'log2n-10' 31-74% apart and the nonnegative fit drops a term
+#: in one and keeps it in the next) while the builds they predict stay close
+BUILD_ANCHORS = (1_024, 16_384, 262_144, 1_048_576)
+
+
+def fit_constants(f: KindFit, model: str, *, per_ray: bool = True) -> dict[str, float]:
     """Each constant a model fitted, by what it means (what two calibrations should agree
-    on): times in seconds, exponents bare.  'power' and 'terms' state their times at N_REF
-    (format 3; a format-2 'power' file's c is the factor of x^p)."""
+    on): times in seconds, exponents bare.  'terms' states its build at ``BUILD_ANCHORS``,
+    'power' its times at N_REF (format 3; a format-2 'power' file's c is the factor of
+    x^p).  per_ray=False: the build's constants alone (a calibration with count models
+    takes each structure's time per ray from those, ``CountFit.constants``)."""
     e = f.extra
     if model == "terms" and "coef_B" in e:
-        out = {f"build {t}": c for t, c in zip(e["terms_B"], e["coef_B"])}
-        return {**out, "build at N_REF": f.c_B, "per ray at N_REF": f.c_R, "p_R": e.get("p_R", 1.0)}
-    if model in ("power", "terms"):
-        out = {"build at N_REF" if "x_ref_B" in e else "c_B": f.c_B, "p_B": e.get("p_B", 1.0),
-               "per ray at N_REF" if "x_ref_R" in e else "c_R": f.c_R, "p_R": e.get("p_R", 1.0)}
-        out.update({k: e[k] for k in ("a_B", "a_R") if e.get(k)})
-        return out
-    return {"c_B": f.c_B, "c_R": f.c_R, **{k: e[k] for k in ("a_B", "a_R") if k in e}}
+        out = {f"build at {n:,}": _estimate_terms(f, "", n).build for n in BUILD_ANCHORS}
+        ray = {"per ray at N_REF": f.c_R, "p_R": e.get("p_R", 1.0)}
+    elif model in ("power", "terms"):
+        out = {"build at N_REF" if "x_ref_B" in e else "c_B": f.c_B, "p_B": e.get("p_B", 1.0)}
+        ray = {"per ray at N_REF" if "x_ref_R" in e else "c_R": f.c_R, "p_R": e.get("p_R", 1.0)}
+        out.update({"a_B": e["a_B"]} if e.get("a_B") else {})
+        ray.update({"a_R": e["a_R"]} if e.get("a_R") else {})
+    else:
+        out, ray = {"c_B": f.c_B}, {"c_R": f.c_R}
+        out.update({"a_B": e["a_B"]} if "a_B" in e else {})
+        ray.update({"a_R": e["a_R"]} if "a_R" in e else {})
+    return {**out, **ray} if per_ray else out
+
+
+def fit_coefficients(f: KindFit, model: str) -> dict[str, float]:
+    """The build's raw coefficients as the file stores them ('terms': one per term of
+    ``BUILD_TERMS``, in seconds), for a report that shows how far the fit trades them."""
+    e = f.extra
+    if model == "terms" and "coef_B" in e:
+        return {f"build {t}": c for t, c in zip(e["terms_B"], e["coef_B"])}
+    return fit_constants(f, model, per_ray=False)
 
 
 def describe_fit(f: KindFit, model: str) -> str:
@@ -466,6 +491,14 @@ def _log_columns(x: np.ndarray, names) -> np.ndarray:
 #: scenes' median is 14).  A term not named here is stated at 0
 COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0}
 
+#: the counts a one-count linear model is stated at (``CountFit.constants``): its time per
+#: ray at two counts the calibration scenes span (their sample rays step through 4.6 to 54
+#: cells; they have 2^9 to 2^20 triangles).  Two times are the model, as intercept and slope
+#: are, but each is measured by the scenes near it, where a slope is the difference of two
+#: noisy ends (two calibrations in a row: the grid's slope 34% apart, its time per ray at
+#: 5 cells 0.8% and at 40 cells 19%)
+COUNT_ANCHORS = {"cells": (5.0, 40.0), "log2n": (10.0, 20.0)}
+
 
 @dataclass
 class CountFit:
@@ -507,8 +540,21 @@ class CountFit:
         return float(sum(c * (t[k] - (0.0 if k == "1" else r)) for k, c, r in zip(self.terms, self.coef, refs)))
 
     def constants(self) -> dict[str, float]:
-        """Each fitted constant by what it means: the time per ray at the reference (s) and
-        each term's slope (linear, s a unit) or exponent (log)."""
+        """Each fitted constant by what it means.  A linear model of one count named in
+        ``COUNT_ANCHORS``: its time per ray (s) at the two anchor counts, which are the
+        model; any other: the time per ray at the reference (s) and each term's slope
+        (linear, s a unit) or exponent (log)."""
+        slopes = [k for k in self.terms if k != "1"]
+        if self.form == "linear" and "1" in self.terms and len(slopes) == 1 and slopes[0] in COUNT_ANCHORS:
+            name = slopes[0]
+            c = dict(zip(self.terms, self.coef))
+            r = dict(zip(self.terms, self._refs()))[name]
+            return {f"at {name} = {x:g}": c["1"] + c[name] * (x - r) for x in COUNT_ANCHORS[name]}
+        return self.coefficients()
+
+    def coefficients(self) -> dict[str, float]:
+        """The coefficients as stored: the time per ray at the reference (s) and each
+        term's slope (linear, s a unit) or exponent (log)."""
         out = {}
         for k, c, r in zip(self.terms, self.coef, self._refs()):
             if k == "1":

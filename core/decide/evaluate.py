@@ -43,6 +43,7 @@ import numpy as np
 
 from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, KindFit, SceneRecord, break_even, log2n, nlog2n
 from .rule import REUSES_SAMPLES, choose
+from .work import DEFAULT_SAMPLES
 
 #: the ray counts of the speedup tables: 1e3 to 1e8, four points a decade
 RAY_COUNTS = np.logspace(3, 8, 21)
@@ -145,24 +146,31 @@ def relative_difference(a: float, b: float) -> float:
     return 100.0 * abs(a - b) / m if m > 0 else 0.0
 
 
-def constants_apart(a, b) -> dict[str, float]:
-    """Each constant two calibrations fitted, as the model states it (``cost.fit_constants``,
-    ``CountFit.constants``: times at a reference size, slopes, exponents), and its
-    ``relative_difference``; constants of fits that differ in model, terms, form or
+def constants_apart(a, b, *, stated: bool = True) -> dict[str, float]:
+    """Each constant two calibrations fitted and its ``relative_difference``: as the model
+    states it (``cost.fit_constants``, ``CountFit.constants``: times at anchor sizes and
+    counts, exponents), or with stated=False as the file stores the coefficients
+    (``cost.fit_coefficients``, ``CountFit.coefficients``).  A structure whose time per ray
+    comes from a count model is compared on that model's constants, not on the per-ray
+    fit no estimate reads.  Constants of fits that differ in model, terms, form or
     reference are not comparable and left out."""
-    from .cost import fit_constants
+    from .cost import fit_coefficients, fit_constants
 
     out = {}
     if a.model == b.model:
         for k, f in a.fits.items():
             if k in b.fits:
-                ca, cb = fit_constants(f, a.model), fit_constants(b.fits[k], a.model)
+                if stated:
+                    per_ray = not (k in a.counts and k in b.counts)
+                    ca, cb = (fit_constants(x, a.model, per_ray=per_ray) for x in (f, b.fits[k]))
+                else:
+                    ca, cb = (fit_coefficients(x, a.model) for x in (f, b.fits[k]))
                 out.update({f"{k} {n}": relative_difference(v, cb[n]) for n, v in ca.items() if n in cb})
     for k, f in a.counts.items():
         g = b.counts.get(k)
         if g is not None and (g.terms, g.form, g.refs) == (f.terms, f.form, f.refs):
-            cb = g.constants()
-            out.update({f"{k} per ray {n}": relative_difference(v, cb[n]) for n, v in f.constants().items()})
+            ca, cb = (f.constants(), g.constants()) if stated else (f.coefficients(), g.coefficients())
+            out.update({f"{k} per ray {n}": relative_difference(v, cb[n]) for n, v in ca.items()})
     return out
 
 
@@ -507,7 +515,7 @@ def _ratio_of(records, k: int) -> float:
 
 
 def held_out_errors(train, test, kind: str = "bvh", grid: str = "counts", hds: str = "counts", terms_of=None,
-                    model: str = DEFAULT_MODEL, samples: int = 16384, forms_of=None) -> list[dict]:
+                    model: str = DEFAULT_MODEL, samples: int = DEFAULT_SAMPLES, forms_of=None) -> list[dict]:
     """Fit on ``train`` (SceneRecords), estimate each of ``test`` and compare its break-even
     with the one measured in its own record.
 
