@@ -83,6 +83,7 @@ TOTALS_PLOT = ["cow", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
 QUICK = dict(
     rays=20000, cal_scale="tiny", cal_rays=4000, cal_ladder=[256, 1024], sweep_rays=8000, sweep_k=[256, 1024],
     sweep_density=[1.0, 2.0], sweep_repeats=1, samples=1024, repeats=2, plan_repeats=2, cal_repeats=1,
+    quiet_share=0.0,  # a smoke run: no retakes on a busy machine
 )
 
 
@@ -155,7 +156,7 @@ def measure_scene(name, group, mesh, cal, args, kinds):
     estimate costs when its samples are K of them (``reuse_estimate_time``)."""
     n = mesh.triangle_count
     o, d = uniform_rays(mesh, args.rays, seed=args.seed)
-    be = measure_break_even(mesh, (o, d), ("grid",) + tuple(kinds), repeats=args.repeats, quiet=QUIET_SHARE)
+    be = measure_break_even(mesh, (o, d), ("grid",) + tuple(kinds), repeats=args.repeats, quiet=quiet_share(args))
     grid, structs = be.structures["grid"], {k: be.structures[k] for k in kinds}
     g_build, g_time = be.measurements["grid"].build_time, be.measurements["grid"].trace_time
     measured = {k: rep.Cost(be.measurements[k].build_time, be.measurements[k].per_ray) for k in kinds}
@@ -485,19 +486,23 @@ def write_markdown(path: Path, R: dict):
           + ", ".join(f"{k} {fnum(v['median'], 1)}% ({fnum(v['max'], 1)}%)" for k, v in crep["per_ray"].items()) + ".\n")
     # -- per scene
     w(f"## Break-even per scene ({cal['model']} model, the plan's grid estimate)\n")
-    w("Times per ray in µs, builds in ms. t_G sample: the grid's time per ray on the plan's K samples; ratio: the "
-      "calibration's correction for K; t_G est = sample x ratio, what the estimate used. Error = 100 (R_est - R_C) / "
-      "R_C. 'never': the grid is at least as fast per ray, so the BVH never pays. Components: the estimate's own "
+    counted = any((s["extra"].get("work") or {}).get("cells") is not None for s in R["scenes"])
+    how = ("t_G est: the grid's count model on the sample's mean cells per ray (cells), what the estimate used; ratio: "
+           "t_G est / t_G sample" if counted else
+           "ratio: the calibration's correction for K; t_G est = sample x ratio, what the estimate used")
+    w("Times per ray in µs, builds in ms. t_G sample: the grid's time per ray on the plan's K samples; " + how + ". "
+      "Error = 100 (R_est - R_C) / R_C. 'never': the grid is at least as fast per ray, so the BVH never pays. Components: the estimate's own "
       "error on the BVH build, on the BVH time per ray, on the grid's time per ray as estimated, and (for comparison) "
       "the raw sample's (each 100 (est - true) / true).\n")
-    w("| scene | group | N | grid build | t_G | t_G sample | ratio | t_G est | BVH build | t_H | R_C (repeats) | "
+    w("| scene | group | N | grid build | t_G | t_G sample | cells | ratio | t_G est | BVH build | t_H | R_C (repeats) | "
       "R_est [low, high] | error | err build | err t_H | err t_G est | err t_G sample |")
-    w("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    w("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for s in R["scenes"]:
         m, c = s["measured"]["bvh"], s["components"]
         halves = ", ".join(fbe(x) for x in s["extra"].get("R_C_repeats", {}).get("bvh", []))
         w(f"| {s['name']} | {s['group']} | {fnum(s['triangles'])} | {scaled(s['grid']['build'], 1e3, 1)} | "
           f"{scaled(s['grid']['per_ray'], 1e6, 2)} | {scaled(s['grid_sample_per_ray'], 1e6, 2)} | "
+          f"{fnum((s['extra'].get('work') or {}).get('cells'), 1)} | "
           f"{fnum((s['extra'].get('grid_sample_ratio') or [None])[0], 2)} | {scaled(s['grid_estimate_per_ray'], 1e6, 2)} | "
           f"{scaled(m['build'], 1e3, 0)} | {scaled(m['per_ray'], 1e6, 2)} | {fbe(s['R_C'])} ({halves}) | "
           f"{fbe(s['R_est'])} [{fbe(s['extra'].get('break_even_low'))}, {fbe(s['extra'].get('break_even_high'))}] | "
@@ -810,7 +815,7 @@ def get_calibration(args):
                 log(f"  {f:4.0%} {msg}")
 
         cal = calibrate(kinds=("bvh", "embree"), scale=args.cal_scale, rays_per_scene=args.cal_rays, progress=progress,
-                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_repeats(args))
+                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_options(args))
         cal.save(path)
         how = f"measured for this report in {cal.duration_s:.0f} s"
     if cal.model != calib.DEFAULT_MODEL or cal.version.get("format") != CALIBRATION_FORMAT:
@@ -828,11 +833,16 @@ def calibrate_again(args, cal: Calibration):
     """A second calibration right after the first (same set and settings), not saved."""
     log(f"calibrating again, for the constants' repeatability ({args.cal_scale} set)")
     return calibrate(kinds=tuple(cal.fits), scale=args.cal_scale, rays_per_scene=args.cal_rays,
-                     model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_repeats(args))
+                     model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_options(args))
 
 
-def cal_repeats(args) -> dict:
-    return {} if args.cal_repeats is None else {"repeats": args.cal_repeats}
+def quiet_share(args) -> float | None:
+    """The share of the CPU other processes may take before a round is retaken (None: never)."""
+    return args.quiet_share if args.quiet_share > 0 else None
+
+
+def cal_options(args) -> dict:
+    return {"quiet": quiet_share(args), **({} if args.cal_repeats is None else {"repeats": args.cal_repeats})}
 
 
 def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> dict:
@@ -1090,6 +1100,9 @@ def main(argv=None):
     ap.add_argument("--sweep-density", default=",".join(map(str, SWEEP_DENSITY)))
     ap.add_argument("--sweep-repeats", type=int, default=2)
     ap.add_argument("--no-embree", action="store_true", help="leave Embree out even when embreex is installed")
+    ap.add_argument("--quiet-share", type=float, default=QUIET_SHARE,
+                    help=f"take a round of measurements again when other processes took more than this share of the "
+                         f"CPU (default {QUIET_SHARE:g}; 0: never; --quick: 0)")
     ap.add_argument("--no-plots", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)

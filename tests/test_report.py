@@ -211,7 +211,7 @@ def test_a_measured_scene_takes_the_plans_corrected_grid_estimate_once():
     from hybrid_raycast.core import scenes as S
 
     R = report_script()
-    args = SimpleNamespace(rays=4000, seed=0, samples=512, repeats=2, plan_repeats=2)
+    args = SimpleNamespace(rays=4000, seed=0, samples=512, repeats=2, plan_repeats=2, quiet_share=0.0)
     s, rays, _, _ = R.measure_scene("t", "procedural", S.make_scene("sphere", 2000, seed=5), hand_calibration(0.5), args, ("bvh",))
     assert s.samples == 512 and s.grid_sample_ratio == pytest.approx(0.5)
     assert s.grid_estimate_per_ray == pytest.approx(0.5 * s.grid_sample_per_ray, rel=1e-12)
