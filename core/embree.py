@@ -115,12 +115,18 @@ class EmbreeAccel(Accel):
     """Embree 4 through embreex.
 
     Config: ``robust`` (default True): RTC_SCENE_FLAG_ROBUST.  ``threads`` (default: the
-    machine's cores, ``accel.default_threads()``): chunks of ``chunk_size`` rays traced
+    machine's cores, ``accel.default_threads()``): chunks of ``chunk_size`` (default 2**17) rays traced
     concurrently, each call releasing the GIL inside embreex's ray loop.
     """
 
     kind = "embree"
     uses_shear = False
+    #: rays per chunk: twice the base class's, since each chunk has a fixed cost beyond
+    #: embreex's ray loop (the five fresh output arrays of ``EmbreeScene.run``, the
+    #: validation, the copy into the output block) that held back 2-thread traces of
+    #: coherent camera rays at 65,536; 8 chunks per 1M rays still keep both threads busy
+    #: when the cost is uneven along the image (sky rows vs object rows); docs/bench_engines.md
+    chunk_size = 1 << 17
 
     def __init__(self, mesh, *, robust: bool = True, threads: int | None = None, **kw):
         self.robust = bool(robust)

@@ -75,6 +75,14 @@ def _per_ray(x, m, name):
     return x
 
 
+def _fresh_f32(x):
+    """A fresh (M,) float32 copy of ``x``; a broadcast scalar is rounded once (the same
+    cast as ``astype``) and filled, not converted ray by ray."""
+    if x.size and x.strides == (0,):
+        return np.full(x.shape, x[0], dtype=F32)
+    return x.astype(F32)
+
+
 def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = True) -> Rays:
     """Validate a ray batch and precompute its shear (``shear=False``: validate only,
     for a structure that does not run this module's kernel).
@@ -103,10 +111,13 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
             raise ValueError(f"{w.size} of {m} rays have a zero-length direction, first at ray {w[:5].tolist()}")
     lo = _per_ray(tmin, m, "tmin")
     hi = _per_ray(tmax, m, "tmax")
-    if (lo > hi).any():
+    # two scalars (the common call) are compared once, not per ray: a chunk of an Embree
+    # trace is short enough for per-ray passes over broadcasts to show
+    both_scalar = m > 0 and lo.strides == (0,) and hi.strides == (0,)
+    if (lo[0] > hi[0]) if both_scalar else (lo > hi).any():
         w = np.flatnonzero(lo > hi)
         raise ValueError(f"{w.size} rays have tmin > tmax, first at ray {w[:5].tolist()}")
-    lo, hi = lo.astype(F32), hi.astype(F32)  # a fresh (M,) array each, also from a broadcast scalar
+    lo, hi = _fresh_f32(lo), _fresh_f32(hi)
     rays = Rays(o32, d32, lo, hi, None, None, None, None)
     return shear_rays(rays) if shear else rays
 

@@ -11,7 +11,7 @@
 The engine table (``--engines``): on 3 icospheres (983,040 triangles) and Suzanne at
 level 5 (1,007,616), 1M random rays and about 1M camera rays, raw embreex (a thread
 pool over 64k-ray chunks, and one thread), ``core.build(mesh, 'embree')`` with its
-defaults, with threads=1 and with robust=False (Open3D's scene flags), the numpy BVH and grid, Blender's BVHTree loop (on a
+defaults, with threads=1 and with robust=False (Open3D's scene flags), the numpy BVH and grid (on the pool and on 1 thread), Blender's BVHTree loop (on a
 strided subset) and Open3D's ``RaycastingScene.cast_rays``, which runs in its own venv
 (``.venv-open3d``; scripts/bench_open3d.py) on the same rays saved to a temporary
 directory.  Columns: build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and
@@ -757,7 +757,7 @@ ENGINE_SCENES = {
 }
 OPEN3D_PYTHON = ROOT / ".venv-open3d" / "bin" / "python"
 #: the rows of the engine table (keys for --tracers)
-ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "embree_fast", "bvh", "grid", "bvhtree", "open3d")
+ENGINE_TRACERS = ("raw", "raw1", "embree", "embree1", "embree_fast", "bvh", "bvh1", "grid", "grid1", "bvhtree", "open3d")
 
 
 def icospheres_mesh():
@@ -931,13 +931,16 @@ def engine_rows(scene, args, tmp):
         # embreex's and ours are RTC_SCENE_FLAG_ROBUST: this row shows what that costs
         ("embree_fast", lambda: EngineProject(mesh, "embree", "core.build(mesh, 'embree', robust=False)", robust=False)),
         ("bvh", lambda: EngineProject(mesh, "bvh", f"numpy BVH ({threads} threads)", threads=threads)),
+        ("bvh1", lambda: EngineProject(mesh, "bvh", "numpy BVH (1 thread)", threads=1)),
         ("grid", lambda: EngineProject(mesh, "grid", f"numpy grid ({threads} threads)", threads=threads)),
+        ("grid1", lambda: EngineProject(mesh, "grid", "numpy grid (1 thread)", threads=1)),
         ("bvhtree", lambda: EngineBVHTree(mesh, args.loop_rays)),
         ("open3d", lambda: Open3DServer(scene, tmp)),
     ]
     if args.tracers:
         makers = [(key, make) for key, make in makers if key in args.tracers]
-    caps = {"bvh": args.numpy_rays, "grid": args.numpy_rays, "bvhtree": args.loop_rays}
+    caps = {"bvh": args.numpy_rays, "bvh1": args.numpy_rays, "grid": args.numpy_rays, "grid1": args.numpy_rays,
+            "bvhtree": args.loop_rays}
     tracers, rows = {}, {}
     for key, make in makers:
         if key in ("raw", "raw1", "embree", "embree1", "embree_fast") and not has_embree:
@@ -1048,6 +1051,8 @@ def engine_goals(scene, rows):
         ("project Embree robust=False (Open3D's scene flags) / Open3D, trace", ("embree_fast", "open3d"), "reported"),
         ("project Embree robust=False / robust (default), trace", ("embree_fast", "embree"), "reported"),
         ("numpy BVH / BVHTree loop", ("bvh", "bvhtree"), ">= 2x random, >= 1x camera"),
+        ("numpy BVH, 2 threads / 1 thread", ("bvh", "bvh1"), ">= 1.7x (goal on 1M rays; here --numpy-rays)"),
+        ("numpy grid, 2 threads / 1 thread", ("grid", "grid1"), ">= 1.7x (goal on 1M rays; here --numpy-rays)"),
         ("numpy grid / BVHTree loop", ("grid", "bvhtree"), ">= 1x random"),
     ]
     for label, (a, b), goal in lines:
