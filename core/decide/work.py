@@ -26,9 +26,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-#: the default number of sample rays a plan traces through the grid (``core.plan``).  The estimate reads the
-#: sample's work counts, not its time: a mean over K rays whose relative standard error is
-#: about 1/sqrt(K) (1.1% at 8,192).  The report's sweep (six held-out scenes, density 1)
+#: the default number of sample rays a plan traces through the grid (``core.plan``).  The
+#: estimate reads the sample's work counts, not its time: a mean over K rays whose relative
+#: standard error is about 1/sqrt(K) (1.1% at 8,192).  The report's sweep (six held-out scenes, density 1)
 #: gave median break-even errors of 11.3%, 12.8% and 14.0% at K = 4,096, 8,192 and
 #: 16,384; the estimate's cost at 1e6 rays (bunny, beetle-alt, cow; locked run
 #: 2026-12-01 22:34) 1.6-2.8%, 2.4-3.7% and 3.8-6.1%.  8,192 keeps the cost under the
