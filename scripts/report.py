@@ -491,7 +491,8 @@ def write_markdown(path: Path, R: dict):
            "t_G est / t_G sample" if counted else
            "ratio: the calibration's correction for K; t_G est = sample x ratio, what the estimate used")
     w("Times per ray in µs, builds in ms. t_G sample: the grid's time per ray on the plan's K samples; " + how + ". "
-      "Error = 100 (R_est - R_C) / R_C. 'never': the grid is at least as fast per ray, so the BVH never pays. Components: the estimate's own "
+      "Error = 100 (R_est - R_C) / R_C. 'never': the grid is at least as fast per ray, so the BVH never pays. "
+      "Components: the estimate's own "
       "error on the BVH build, on the BVH time per ray, on the grid's time per ray as estimated, and (for comparison) "
       "the raw sample's (each 100 (est - true) / true).\n")
     w("| scene | group | N | grid build | t_G | t_G sample | cells | ratio | t_G est | BVH build | t_H | R_C (repeats) | "
