@@ -115,8 +115,8 @@ class EmbreeAccel(Accel):
     """Embree 4 through embreex.
 
     Config: ``robust`` (default True): RTC_SCENE_FLAG_ROBUST.  ``threads`` (default: the
-    machine's cores, ``accel.default_threads()``): chunks of ``chunk_size`` (default 2**17) rays traced
-    concurrently, each call releasing the GIL inside embreex's ray loop.
+    machine's cores, ``accel.default_threads()``): chunks of ``chunk_size`` (default 2**17)
+    rays traced concurrently, each call releasing the GIL inside embreex's ray loop.
     """
 
     kind = "embree"

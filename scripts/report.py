@@ -481,7 +481,7 @@ def write_markdown(path: Path, R: dict):
           + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep["constants"].items())
           + ". The same as the file stores the coefficients (the four build terms trade against each other, "
           "a slope against an intercept): "
-          + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep.get("coefficients", {}).items())
+          + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep["coefficients"].items())
           + ". Per-ray times they predict on the evaluated scenes' counts, median (max) difference: "
           + ", ".join(f"{k} {fnum(v['median'], 1)}% ({fnum(v['max'], 1)}%)" for k, v in crep["per_ray"].items()) + ".\n")
     # -- per scene
@@ -1022,8 +1022,7 @@ def calibration_row(c: dict) -> dict:
                        "of a stored coefficient (median); break-evens they give, max / min, median (max)",
             "goal": "≤ 10%",
             "value": f"{fnum(c['max_constant'], 1, None)} ({fnum(c['median_constant'], 1, None)}); "
-                     f"{fnum(c.get('max_coefficient', math.nan), 1, None)} "
-                     f"({fnum(c.get('median_coefficient', math.nan), 1, None)}); "
+                     f"{fnum(c['max_coefficient'], 1, None)} ({fnum(c['median_coefficient'], 1, None)}); "
                      f"{fnum(ratio['median'], 3)} ({fnum(ratio['max'], 2)})",
             "met": "yes" if c["max_constant"] <= 10 else "**no**"}
 

@@ -284,7 +284,7 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
     rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
               for k in kinds if k != "grid"}
     return BreakEven(mesh.triangle_count, len(origins), meas, rc, max(1, int(repeats)), rc_rep, runs, last,
-                     notes=quiet_notes(shares, quiet) if quiet is not None else [])
+                     notes=quiet_notes(shares, quiet))
 
 
 def _grid_samples(mesh, ladder, threads, config, seed) -> dict[int, float]:
@@ -318,8 +318,9 @@ def sample_work(mesh, k: int, *, threads=None, config=None, seed=0) -> Work:
 
 def quiet_notes(shares, quiet: float | None) -> list[str]:
     """What ``interleaved``'s (share, takes) per round say about other processes' use of
-    the CPU (``OthersShare``), as notes for a calibration or a measurement."""
-    if not shares:
+    the CPU (``OthersShare``), as notes for a calibration or a measurement; none when
+    nothing was checked (quiet None)."""
+    if not shares or quiet is None:
         return []
     seen = [x for x, _ in shares if x is not None]
     if not seen:
@@ -330,10 +331,11 @@ def quiet_notes(shares, quiet: float | None) -> list[str]:
     if again:
         out.append(f"{len(again)} of {len(shares)} measurement rounds were taken again ({sum(again) - len(again)} "
                    f"retakes): other processes took more than {quiet:.0%} of the CPU while they ran")
-    loud = [x for x in seen if quiet is not None and x > quiet]
+    loud = [(x, n) for x, n in shares if x is not None and x > quiet]
     if loud:
-        out.append(f"{len(loud)} of {len(shares)} rounds stayed busier than that after {QUIET_RETRIES} retakes "
-                   f"(up to {max(loud):.0%} of the CPU taken by others): their times may be slow; {BUSY_ADVICE}")
+        out.append(f"{len(loud)} of {len(shares)} rounds stayed busier than that after {max(n for _, n in loud) - 1} "
+                   f"retakes (up to {max(x for x, _ in loud):.0%} of the CPU taken by others): their times may be "
+                   f"slow; {BUSY_ADVICE}")
     return out
 
 
