@@ -10,6 +10,7 @@ GIL inside most ufuncs, so chunks overlap on several cores).
 from __future__ import annotations
 
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -31,6 +32,29 @@ def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))
 
 
+class RaySupply:
+    """The rays of one chunk handed out in consecutive slices to the threads tracing it
+    together (``Accel.shares_chunks``): every thread refills its lockstep pool from here as
+    its rays finish, so all threads stay busy until the chunk runs out and finish together,
+    instead of one thread tracing alone while the other's fixed half is done."""
+
+    def __init__(self, m: int):
+        self.m = m
+        self.next = 0
+        self._lock = threading.Lock()
+
+    @property
+    def left(self) -> bool:
+        return self.next < self.m
+
+    def take(self, k: int) -> slice:
+        """The next at most ``k`` rays (an empty slice once the chunk is handed out)."""
+        with self._lock:
+            a = self.next
+            self.next = min(self.m, a + max(0, int(k)))
+            return slice(a, self.next)
+
+
 class Accel:
     """Base of every structure. Subclasses implement ``_build`` and ``_trace_rays``."""
 
@@ -39,6 +63,9 @@ class Accel:
     chunk_size = 1 << 16
     #: whether ``_trace_rays`` needs the Woop shear of core/intersect.py (Embree does not)
     uses_shear = True
+    #: True: ``_trace_rays``/``_occluded_rays`` trace a whole chunk on all threads at once,
+    #: drawing rays from one ``RaySupply`` (``_shared``); False: one chunk per thread
+    shares_chunks = False
 
     def __init__(self, mesh: TriangleMesh, *, threads: int | None = None, chunk_size: int | None = None):
         if not isinstance(mesh, TriangleMesh):
@@ -82,6 +109,13 @@ class Accel:
         return np.concatenate(self._map_chunks(self._occluded_rays, rays))
 
     def _chunk_bounds(self, m: int) -> list[tuple[int, int]]:
+        if self.shares_chunks:  # every thread works on every chunk: no split for threads
+            n = -(-m // self.chunk_size)
+            edges = [m * i // n for i in range(n + 1)]
+            return list(zip(edges[:-1], edges[1:]))
+        return self._thread_chunk_bounds(m)
+
+    def _thread_chunk_bounds(self, m: int) -> list[tuple[int, int]]:
         """At most ``chunk_size`` rays a chunk, the count a multiple of ``threads`` (when
         each chunk keeps ``MIN_SPLIT`` rays: a small batch is not worth a thread pool) and
         the sizes equal within one ray, so that no thread is left alone with the last chunk."""
@@ -93,11 +127,44 @@ class Accel:
 
     def _map_chunks(self, fn, rays: Rays):
         chunks = [rays.subset(slice(a, b)) for a, b in self._chunk_bounds(len(rays))]
+        if self.shares_chunks:  # the threads work inside each chunk (``_shared``)
+            return [fn(self._sheared(c) if self.uses_shear else c) for c in chunks]
         if self.uses_shear and rays.shear is None:
             # the Woop shear is computed inside each chunk's task, so on the thread pool too
             def fn(chunk, fn=fn):
                 return fn(shear_rays(chunk))
         return self._in_pool(fn, chunks)
+
+    def _workers(self, m: int) -> int:
+        """Threads for one chunk of ``m`` rays: each keeps at least ``MIN_SPLIT`` of them."""
+        return max(1, min(self.threads, m // MIN_SPLIT))
+
+    def _sheared(self, rays: Rays) -> Rays:
+        """``shear_rays`` of a chunk, its parts on the pool."""
+        if rays.shear is not None:
+            return rays
+        n = self._workers(len(rays))
+        if n == 1:
+            return shear_rays(rays)
+        m = len(rays)
+        parts = self._in_pool(shear_rays, [rays.subset(slice(m * i // n, m * (i + 1) // n)) for i in range(n)])
+        return Rays(rays.origins, rays.directions, rays.tmin, rays.tmax,
+                    *(np.concatenate([getattr(p, f) for p in parts]) for f in ("kx", "ky", "kz", "shear")))
+
+    def _shared(self, work, m: int) -> list:
+        """``work(supply)`` on ``_workers(m)`` threads sharing one ``RaySupply(m)``."""
+        supply = RaySupply(m)
+        return self._in_pool(lambda _: work(supply), range(self._workers(m)))
+
+    def _finished(self, best, rays: Rays, tri_vertices) -> Hits:
+        """``best.finish`` (a ``NearestHits`` over the chunk ``rays``), its parts on the pool."""
+        m = len(rays)
+        n = self._workers(m)
+        if n == 1:
+            return best.finish(rays, tri_vertices)
+        parts = self._in_pool(lambda sl: best.part(sl).finish(rays.subset(sl), tri_vertices),
+                              [slice(m * i // n, m * (i + 1) // n) for i in range(n)])
+        return Hits(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "triangle", "u", "v")))
 
     def _in_pool(self, fn, items) -> list:
         """[fn(x) for x in items], on a pool of ``threads`` threads when there are several."""

@@ -392,6 +392,12 @@ def _widen_signed(x, out=None):
     return np.add(x, np.abs(x) * (WIDEN - F32(1)), out=out)
 
 
+def _reciprocal(d):
+    """1 / direction in float32; +-0.0 gives +-inf: see the module docstring."""
+    with np.errstate(divide="ignore"):
+        return F32(1.0) / d
+
+
 def _sort4(a, b, c, d):
     """Five-comparator sorting network on four key arrays."""
     a, b = np.minimum(a, b), np.maximum(a, b)
@@ -416,7 +422,8 @@ class BVH(Accel):
       pools amortise the per-step numpy calls: BENCHMARKS.md, issue 10);
       plus ``threads`` and ``chunk_size`` of every structure (default 2**20 rays: the pool
       refills finished rays' slots in place, so it stays full until the chunk runs out and
-      only the last steps of a chunk run on few rays).
+      only the last steps of a chunk run on few rays; the threads trace every chunk
+      together, each with its own pool refilled from one ``RaySupply``).
 
     Layout (read by tests and the cost model): ``node_boxes`` (W, 24) float32 per wide node
     the boxes of its 4 children as lo x, y, z then hi x, y, z, each for children 0..3 (NaN
@@ -487,33 +494,36 @@ class BVH(Accel):
         self._counters = []
         return super().occluded(*args, **kw)
 
+    shares_chunks = True
+
     def _trace_rays(self, rays: Rays):
         best = NearestHits(len(rays))
         if len(self.node_boxes):
-            with np.errstate(invalid="ignore", over="ignore"):  # 0 * inf: see the module docstring
-                self._traverse(rays, best, None)
-        return best.finish(rays, self.mesh.tri_vertices)
+            self._shared(lambda supply: self._traverse(rays, best, None, supply), len(rays))
+        return self._finished(best, rays, self.mesh.tri_vertices)
 
     def _occluded_rays(self, rays: Rays):
         hit = np.zeros(len(rays), bool)
         if len(self.node_boxes):
-            with np.errstate(invalid="ignore", over="ignore"):
-                self._traverse(rays, None, hit)
+            self._shared(lambda supply: self._traverse(rays, None, hit, supply), len(rays))
         return hit
 
-    def _traverse(self, rays: Rays, best: NearestHits | None, anyhit: np.ndarray | None):
-        """Nearest hit (into ``best``) or any hit (into ``anyhit``) for one chunk of rays.
+    def _traverse(self, rays: Rays, best: NearestHits | None, anyhit: np.ndarray | None, supply):
+        """Nearest hit (into ``best``) or any hit (into ``anyhit``) for the rays of one chunk
+        this thread draws from ``supply`` (``RaySupply``; other threads fill other rays).
 
         A pool of at most ``batch`` rays steps in lockstep, one wide node per ray per step;
-        finished rays are compacted away and the pool is refilled from the chunk, so every
+        finished rays are compacted away and the pool is refilled from the supply, so every
         step works on many rays and the per-ray state stays in cache.
         """
+        with np.errstate(invalid="ignore", over="ignore"):  # 0 * inf: see the module docstring
+            self._lockstep(rays, best, anyhit, supply)
+
+    def _lockstep(self, rays: Rays, best: NearestHits | None, anyhit: np.ndarray | None, supply):
         m = len(rays)
         P = int(min(m, self.batch))
         D = self._stack_depth
         box, child, leaf_start, leaf_count = self.node_boxes, self.node_children, self.leaf_start, self.leaf_count
-        with np.errstate(divide="ignore"):
-            inv_all = F32(1.0) / rays.directions  # +-0.0 gives +-inf: see the module docstring
         # pool state, rays packed at the front [0, A)
         rid = np.empty(P, np.intp)
         cur = np.zeros(P, np.intp)  # the wide node each ray visits this step
@@ -546,27 +556,27 @@ class BVH(Accel):
         cols = np.arange(P)
         widen = _widen_signed if (rays.tmin < 0).any() else _widen
         visits = leaf_visits = pairs = steps = 0
-        A = nxt = ndead = 0
+        A = ndead = taken = 0
         compact = True
         while True:
             if compact:  # refill finished rays' slots from the chunk, else drop them
                 compact = False
-                if ndead and nxt < m:
+                if ndead and supply.left:
                     # in place: a finished ray's column (its stack empty, ptr at its own
                     # column) takes a new ray, so nothing moves while the chunk lasts
                     free = np.flatnonzero(dead[:A])
-                    k = min(len(free), m - nxt)
+                    new = supply.take(len(free))
+                    k = new.stop - new.start
                     f = free[:k]
-                    new = slice(nxt, nxt + k)
-                    rid[f] = np.arange(nxt, nxt + k)
+                    rid[f] = np.arange(new.start, new.stop)
                     cur[f] = 0
                     ptr[f] = f
                     org[:, f] = rays.origins[new].T
-                    inv[:, f] = inv_all[new].T
+                    inv[:, f] = _reciprocal(rays.directions[new]).T
                     tmin[f] = rays.tmin[new]
                     tlim[f] = rays.tmax[new]
                     dead[f] = False
-                    nxt += k
+                    taken += k
                     ndead -= k
                 if ndead:
                     keep = np.flatnonzero(~dead[:A])
@@ -580,17 +590,18 @@ class BVH(Accel):
                     if top:
                         stack[:top, :n] = stack[:top, :A].take(keep, axis=1)
                     A, ndead = n, 0
-                k = min(P - A, m - nxt)
+                new = supply.take(P - A)
+                k = new.stop - new.start
                 if k:
-                    new, sl = slice(nxt, nxt + k), slice(A, A + k)
-                    rid[sl] = np.arange(nxt, nxt + k)
+                    sl = slice(A, A + k)
+                    rid[sl] = np.arange(new.start, new.stop)
                     cur[sl] = 0
                     ptr[sl] = cols[sl]
                     org[:, sl] = rays.origins[new].T
-                    inv[:, sl] = inv_all[new].T
+                    inv[:, sl] = _reciprocal(rays.directions[new]).T
                     tmin[sl] = rays.tmin[new]
                     tlim[sl] = rays.tmax[new]
-                    A, nxt = A + k, nxt + k
+                    A, taken = A + k, taken + k
                 dead[:A] = False
                 if A == 0:
                     break
@@ -689,8 +700,8 @@ class BVH(Accel):
                 cur[pop] = e[::2]
                 pop = pop[e[1::2].view(F32) > widen(tlim.take(pop))]
             ndead = int(np.count_nonzero(dead[:A]))
-            compact = ndead * 4 >= A or (nxt < m and ndead * 16 >= P)
-        self._counters.append((m, visits, leaf_visits, pairs, steps))
+            compact = ndead * 4 >= A or (supply.left and ndead * 16 >= P)
+        self._counters.append((taken, visits, leaf_visits, pairs, steps))
 
     # -- statistics ------------------------------------------------------------------------
     def stats(self) -> dict:
@@ -698,7 +709,7 @@ class BVH(Accel):
         leaf sizes, ``memory_bytes`` of the traversal arrays) and, after a trace or occluded
         call, its counters averaged per ray: ``nodes_per_ray`` (wide nodes whose 4 child boxes
         were tested), ``leaves_per_ray``, ``triangles_per_ray`` (kernel pairs), and
-        ``lockstep_steps`` (most steps of one chunk)."""
+        ``lockstep_steps`` (most steps of one thread's pool on one chunk)."""
         s = super().stats()
         leaf_count = self.leaf_count
         s.update(

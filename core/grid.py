@@ -444,8 +444,21 @@ class UniformGrid(Accel):
         I[4] = live
         return F, I
 
+    shares_chunks = True
+
     def _traverse(self, rays: Rays, any_hit: bool):
-        """Amanatides-Woo 3D-DDA, all live rays of the chunk in lockstep.
+        """Amanatides-Woo 3D-DDA of one chunk: the nearest hits (``Hits``) or the any-hit mask."""
+        m = len(rays)
+        best = None if any_hit else NearestHits(m)
+        hit = np.zeros(m, bool)
+        R = np.empty((7, m), np.float32) if self.prefilter else None  # filled as rays are handed out
+        self._shared(lambda supply: self._lockstep(rays, best, hit, R, supply), m)
+        return hit if any_hit else self._finished(best, rays, self.mesh.tri_vertices)
+
+    def _lockstep(self, rays: Rays, best: NearestHits | None, hit: np.ndarray, R, supply):
+        """The DDA for the rays this thread draws from ``supply`` (``RaySupply``), all live
+        rays of its pool in lockstep; nearest hits into ``best``, or (``best`` None) any hit
+        into ``hit``.
 
         A ray finishes when its segment ends in the current cell (box exit or tmax), when
         (nearest hit) its best t + mu is at most the cell's exit distance, or (any hit) on
@@ -453,14 +466,10 @@ class UniformGrid(Accel):
         ``cell_start`` (empty) or in a wrapped-around cell (extra tests never change a
         nearest hit), and the next check ends the ray.
         """
-        m = len(rays)
+        any_hit = best is None
         tv = self.mesh.tri_vertices
-        best = None if any_hit else NearestHits(m)
-        hit = np.zeros(m, bool)
         F, I = np.empty((9, 0), F64), np.empty((5, 0), np.int64)
-        nxt = 0
         s_lo, s_hi, tris, tmax = self._starts_lo, self._starts_hi, self.cell_tris, rays.tmax
-        R = self._filter_rays(rays) if self.prefilter else None
 
         def pairs(rr, ss, cc):
             Rz = None if R is None else np.take(R, rr, axis=1)  # per ray, gathered per pair below
@@ -472,14 +481,16 @@ class UniformGrid(Accel):
                 yield owner, np.take(rr, owner), tri
         skip = self._skip
         while True:
-            if nxt < m and I.shape[1] * 8 <= self.pool * 7:  # refill the pool from the chunk
-                k = min(m - nxt, self.pool - I.shape[1])
-                Fn, In = self._setup(rays.subset(slice(nxt, nxt + k)))
-                In[4] += nxt
+            if supply.left and I.shape[1] * 8 <= self.pool * 7:  # refill the pool from the chunk
+                new = supply.take(self.pool - I.shape[1])
+                part = rays.subset(new)
+                if R is not None:
+                    R[:, new] = self._filter_rays(part)
+                Fn, In = self._setup(part)
+                In[4] += new.start
                 F, I = np.concatenate([F, Fn], axis=1), np.concatenate([I, In], axis=1)
-                nxt += k
             if not I.shape[1]:
-                if nxt < m:
+                if supply.left:
                     continue
                 break
             # empty-space skip: a ray in an empty cell whose cube of radius r around it is
@@ -542,7 +553,6 @@ class UniformGrid(Accel):
             np.add(I[0], I[1], out=I[0], where=sx)
             np.add(I[0], I[2], out=I[0], where=sy)
             np.add(I[0], I[3], out=I[0], where=sz)
-        return hit if any_hit else best.finish(rays, tv)
 
     def _filter_rays(self, rays: Rays):
         """(7, M) float32 rows: origin xyz, 1/direction xyz, slack eps, for _box_filter."""

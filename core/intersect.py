@@ -271,6 +271,12 @@ class NearestHits:
     def __init__(self, m: int):
         self.key = np.full(m, MISS_KEY, np.uint64)
 
+    def part(self, rows: slice) -> "NearestHits":
+        """The same hits for the rays ``rows`` (a view: updates go through)."""
+        p = NearestHits.__new__(NearestHits)
+        p.key = self.key[rows]
+        return p
+
     def update(self, ray_idx, tri_idx, t):
         """Fold in kernel results t (P,) for pairs (ray_idx, tri_idx); inf means no hit."""
         m = np.isfinite(t)
