@@ -418,8 +418,9 @@ class BVH(Accel):
       ``cluster_bits=6``: "hlbvh" grid of 2**cluster_bits cells per axis;
       ``sah_min=0``: nodes of at most this many triangles split at the highest differing
       Morton bit instead of by SAH (faster build, more node visits per ray);
-      ``batch=32768``: rays stepping in lockstep per chunk (bounds the working set; bigger
-      pools amortise the per-step numpy calls: BENCHMARKS.md, issue 10);
+      ``batch=65536``: rays stepping in lockstep per thread (bounds the working set; bigger
+      pools amortise the per-step numpy calls, which two threads contend for: BENCHMARKS.md,
+      issue 10);
       plus ``threads`` and ``chunk_size`` of every structure (default 2**20 rays: the pool
       refills finished rays' slots in place, so it stays full until the chunk runs out and
       only the last steps of a chunk run on few rays; the threads trace every chunk
@@ -436,7 +437,7 @@ class BVH(Accel):
     chunk_size = 1 << 20
 
     def __init__(self, mesh, *, builder: str = "hlbvh", leaf_size: int = 4, sah_bins: int = 16, cluster_bits: int = 6,
-                 sah_min: int = 0, batch: int = 32768, **kw):
+                 sah_min: int = 0, batch: int = 65536, **kw):
         if builder not in BUILDERS:
             raise ValueError(f"unknown BVH builder {builder!r}; expected one of {', '.join(BUILDERS)}")
         self.builder = builder
