@@ -34,13 +34,18 @@ this wrapper does about it:
   ray so that ``build_time`` includes Embree's build, as the cost model needs.
 - What embreex does not expose (``embreex/rtcore_scene.pxd``, ``rtcore.pyx``): the
   scene's build quality (``rtcSetSceneBuildQuality``; Embree's default, MEDIUM, is
-  used), any device config (``rtcNewDevice(NULL)``: Embree's own build threads are all
-  hardware threads), scene flags other than ROBUST, shared (zero-copy) buffers and
-  packet or stream queries.  Its ``mesh_construction.TriangleMesh`` copies the arrays
-  into Embree's buffers element by element through untyped (Python-level) indexing
-  (``_build_from_indices`` / ``_build_from_flat``), which costs more than Embree's own
-  BVH build (BENCHMARKS.md); the indexed form (vertices + triangle indices: 3V + 6T
-  reads) needs fewer of them than the flat (T, 3, 3) form (9T), so it is the one used.
+  used, as in Open3D), any device config (``rtcNewDevice(NULL)``: Embree's own build
+  threads are all hardware threads), scene flags other than ROBUST and packet or stream
+  queries.  Its ``mesh_construction.TriangleMesh`` copies the arrays into Embree's
+  buffers element by element through untyped (Python-level) indexing
+  (``_build_from_indices``): at 1.1M triangles 1.5-1.7 s, four times Embree's own BVH
+  build, and most of the build's scatter.  So the geometry is filled through Embree's C
+  API instead (``_DirectFill``: ctypes on the libembree4 embreex itself loaded, two
+  numpy copies into the buffers of ``rtcSetNewGeometryBuffer``; 10 ms there), on the
+  scene embreex made, whose handle it reads from the scene object (the layout is
+  checked, and Embree must confirm the handle, before anything is written).
+  ``TriangleMesh`` remains the fallback when that check fails (another embreex layout,
+  no library file found); ``stats()['fill']`` says which one built the structure.
 
 Triangles that are degenerate (zero area in float64, ``TriangleMesh.valid``) are not
 given to Embree, and Embree's primID is mapped back to the mesh's triangle index.
@@ -48,7 +53,10 @@ given to Embree, and Embree's primID is mapped back to the mesh's triangle index
 
 from __future__ import annotations
 
+import ctypes
 import importlib.util
+import os
+import sys
 
 import numpy as np
 
@@ -102,13 +110,13 @@ def embree_unavailable_reason(system: str | None = None, machine: str | None = N
 
 def _import_embreex():
     try:
-        from embreex import mesh_construction, rtcore_scene
+        from embreex import mesh_construction, rtcore, rtcore_scene
     except ImportError as e:  # ModuleNotFoundError, or a broken binary wheel
         raise RuntimeError(
             f"embreex is not installed: the 'embree' structure needs it ({e}); "
             "use kind 'grid', 'bvh' or 'brute', or install embreex"
         ) from e
-    return rtcore_scene, mesh_construction
+    return rtcore, rtcore_scene, mesh_construction
 
 
 class EmbreeAccel(Accel):
@@ -117,6 +125,8 @@ class EmbreeAccel(Accel):
     Config: ``robust`` (default True): RTC_SCENE_FLAG_ROBUST.  ``threads`` (default: the
     machine's cores, ``accel.default_threads()``): chunks of ``chunk_size`` (default 2**17)
     rays traced concurrently, each call releasing the GIL inside embreex's ray loop.
+    ``direct_fill`` (default True): fill the geometry through Embree's C API when
+    ``_DirectFill`` can; False always uses embreex's ``TriangleMesh`` (same hits, slower).
     """
 
     kind = "embree"
@@ -128,24 +138,32 @@ class EmbreeAccel(Accel):
     #: when the cost is uneven along the image (sky rows vs object rows); docs/bench_engines.md
     chunk_size = 1 << 17
 
-    def __init__(self, mesh, *, robust: bool = True, threads: int | None = None, **kw):
+    def __init__(self, mesh, *, robust: bool = True, threads: int | None = None, direct_fill: bool = True, **kw):
         self.robust = bool(robust)
+        self.direct_fill = bool(direct_fill)
         super().__init__(mesh, threads=threads, **kw)
 
     def _build(self):
-        rtcore_scene, mesh_construction = _import_embreex()
+        rtcore, rtcore_scene, mesh_construction = _import_embreex()
         valid = self.mesh.valid
         self.prim_to_triangle = np.flatnonzero(valid).astype(np.int32)
         # None when every triangle is valid: Embree's primID is the triangle index
         self._remap = None if self.prim_to_triangle.size == valid.size else self.prim_to_triangle
         self.scene = None
+        self.fill = None
         if self.prim_to_triangle.size == 0:
             return
-        self.scene = rtcore_scene.EmbreeScene(robust=self.robust)
+        device = rtcore.EmbreeDevice()  # what EmbreeScene() makes itself; 0.01 ms
+        self.scene = rtcore_scene.EmbreeScene(device, robust=self.robust)
         triangles = self.mesh.triangles if self._remap is None else self.mesh.triangles[self._remap]
-        self._geometry = mesh_construction.TriangleMesh(
-            self.scene, np.ascontiguousarray(self.mesh.vertices, F32), np.ascontiguousarray(triangles, np.int32)
-        )
+        direct = self.direct_fill and _DirectFill.get()
+        if direct and direct.fill(self.scene, device, self.mesh.vertices, triangles):
+            self.fill = "direct"
+        else:
+            mesh_construction.TriangleMesh(
+                self.scene, np.ascontiguousarray(self.mesh.vertices, F32), np.ascontiguousarray(triangles, np.int32)
+            )
+            self.fill = "embreex"
         # force the commit (Embree's BVH build) now, so build_time measures it and no two
         # threads' first run() commit at once
         one = np.zeros((1, 3), F32)
@@ -379,5 +397,139 @@ class EmbreeAccel(Accel):
 
     def stats(self) -> dict:
         st = super().stats()
-        st.update(robust=self.robust, embree_triangles=int(self.prim_to_triangle.size))
+        st.update(robust=self.robust, embree_triangles=int(self.prim_to_triangle.size), fill=self.fill)
         return st
+
+
+class _DirectFill:
+    """A scene's triangle geometry filled through Embree's C API (ctypes), not embreex's loop.
+
+    embreex keeps the scene's ``RTCScene`` in a private attribute of ``EmbreeScene`` and the
+    ``RTCDevice`` in one of ``EmbreeDevice``.  Cython lays a cdef class out as a C struct
+    after the object header, in declaration order (``rtcore_scene.pxd``: ``scene_i``,
+    ``is_committed``, ``device``; ``rtcore.pxd``: ``device``), so with no vtable the handles
+    sit at fixed offsets.  Before it writes anything, ``fill`` checks that layout three ways:
+    both classes have the struct's size, the scene's ``device`` slot holds the very
+    EmbreeDevice passed to it, and Embree's ``rtcGetSceneDevice`` on the scene handle
+    returns the device handle.  If any check fails it returns False and the caller uses
+    ``TriangleMesh``; an Embree error after the checks is raised.
+
+    The library is the libembree4 file shipped beside embreex (``embreex.libs`` on Linux
+    and Windows, ``.dylibs`` on macOS); loading that same path again returns the library
+    already loaded, so the handles belong to it.
+    """
+
+    _instance: "_DirectFill | None | bool" = False  # False: not looked for yet
+    #: RTCGeometryType, RTCBufferType and RTCFormat values (embree4/rtcore_geometry.h,
+    #: rtcore_buffer.h, rtcore_common.h)
+    TRIANGLE, INDEX, VERTEX, UINT3, FLOAT3 = 0, 0, 1, 0x5003, 0x9003
+    _HEAD = object.__basicsize__  # the object header before a cdef class's fields
+    _PTR = ctypes.sizeof(ctypes.c_void_p)
+    #: EmbreeScene: header, RTCScene scene_i, int is_committed (padded), EmbreeDevice device
+    SCENE_SIZE, SCENE_DEVICE = _HEAD + 3 * _PTR, _HEAD + 2 * _PTR
+    DEVICE_SIZE = _HEAD + _PTR  # EmbreeDevice: header, RTCDevice device
+    _ERRORS = {2: "invalid argument", 3: "invalid operation", 4: "out of memory"}
+
+    def __init__(self, lib):
+        vp, c = ctypes.c_void_p, ctypes
+        self.lib = lib
+        for name, res, args in (
+            ("rtcGetSceneDevice", vp, [vp]),
+            ("rtcReleaseDevice", None, [vp]),
+            ("rtcGetDeviceError", c.c_int, [vp]),
+            ("rtcNewGeometry", vp, [vp, c.c_int]),
+            ("rtcSetNewGeometryBuffer", vp, [vp, c.c_int, c.c_uint, c.c_int, c.c_size_t, c.c_size_t]),
+            ("rtcCommitGeometry", None, [vp]),
+            ("rtcAttachGeometry", c.c_uint, [vp, vp]),
+            ("rtcReleaseGeometry", None, [vp]),
+        ):
+            fn = getattr(lib, name)
+            fn.restype, fn.argtypes = res, args
+
+    @classmethod
+    def get(cls) -> "_DirectFill | None":
+        """The one instance, or None when the library or the expected layout is not there."""
+        if cls._instance is False:
+            cls._instance = None
+            path = cls.library_path()
+            if path is not None:
+                try:
+                    cls._instance = cls(ctypes.CDLL(path))
+                except (OSError, AttributeError):  # not loadable, or a symbol missing
+                    pass
+        return cls._instance
+
+    @staticmethod
+    def library_path() -> str | None:
+        """The libembree4 file embreex's extensions load, when exactly one is found."""
+        spec = importlib.util.find_spec("embreex")
+        if spec is None or not spec.submodule_search_locations:
+            return None
+        pkg = list(spec.submodule_search_locations)[0]
+        found = []
+        for folder in (os.path.join(os.path.dirname(pkg), "embreex.libs"), os.path.join(pkg, ".dylibs"), pkg):
+            if os.path.isdir(folder):
+                found += [os.path.join(folder, f) for f in sorted(os.listdir(folder)) if "embree4" in f]
+        if len(found) != 1:
+            return None
+        if sys.platform.startswith("linux"):  # the file must be the one already mapped
+            try:
+                with open("/proc/self/maps") as maps:
+                    if os.path.realpath(found[0]) not in maps.read():
+                        return None
+            except OSError:
+                return None
+        return found[0]
+
+    def handles(self, scene, device):
+        """(RTCScene, RTCDevice) of an embreex scene and the device it was made with, or None
+        when the layout is not the one described in the class docstring."""
+        rtcore, rtcore_scene, _ = _import_embreex()
+        if (type(scene) is not rtcore_scene.EmbreeScene or type(device) is not rtcore.EmbreeDevice
+                or type(scene).__basicsize__ != self.SCENE_SIZE or type(device).__basicsize__ != self.DEVICE_SIZE):
+            return None
+        address = ctypes.c_void_p.from_address
+        if address(id(scene) + self.SCENE_DEVICE).value != id(device):
+            return None
+        scene_h, device_h = address(id(scene) + self._HEAD).value, address(id(device) + self._HEAD).value
+        if not scene_h or not device_h:
+            return None
+        owner = self.lib.rtcGetSceneDevice(scene_h)  # adds a reference to the device
+        if owner:
+            self.lib.rtcReleaseDevice(owner)
+        return (scene_h, device_h) if owner == device_h else None
+
+    def fill(self, scene, device, vertices, triangles) -> bool:
+        """Attach one triangle geometry of ``vertices`` (V, 3) and ``triangles`` (T, 3) to
+        ``scene``, to be built on its next ``run``; False (nothing written) when ``handles``
+        refuses."""
+        h = self.handles(scene, device)
+        if h is None:
+            return False
+        scene_h, device_h = h
+        lib = self.lib
+        geometry = lib.rtcNewGeometry(device_h, self.TRIANGLE)
+        self._check(device_h, geometry)
+        try:
+            for kind, fmt, item, data in ((self.VERTEX, self.FLOAT3, ctypes.c_float, vertices),
+                                          (self.INDEX, self.UINT3, ctypes.c_uint32, triangles)):
+                n = len(data)
+                buf = lib.rtcSetNewGeometryBuffer(geometry, kind, 0, fmt, 3 * ctypes.sizeof(item), n)
+                self._check(device_h, buf)
+                # the values convert on the copy: float64 -> float32 rounds as astype does,
+                # int32 -> uint32 keeps the (non-negative) indices
+                np.copyto(np.ctypeslib.as_array((item * (3 * n)).from_address(buf)).reshape(n, 3), data,
+                          casting="unsafe")
+            lib.rtcCommitGeometry(geometry)
+            lib.rtcAttachGeometry(scene_h, geometry)
+            self._check(device_h, True)
+        finally:
+            lib.rtcReleaseGeometry(geometry)  # the scene keeps its own reference
+        scene.is_committed = 0  # embreex's run commits (rebuilds) only when this is 0
+        return True
+
+    def _check(self, device_h, result):
+        code = self.lib.rtcGetDeviceError(device_h)
+        if code or not result:
+            what = self._ERRORS.get(code, f"error {code}")
+            raise (MemoryError if code == 4 else RuntimeError)(f"Embree could not take the triangles: {what}")

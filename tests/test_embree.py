@@ -232,3 +232,46 @@ def test_chunk_by_chunk_validation_gives_the_whole_batch_paths_hits_and_errors(t
             with pytest.raises(ValueError) as chunked:
                 getattr(acc, fn)(*args)
             assert str(chunked.value) == str(whole.value), f"{name}, {fn}: {chunked.value!r} != {whole.value!r}"
+
+
+@needs_embree
+def test_direct_fill_builds_the_same_structure_as_embreex_copy():
+    """The geometry filled through Embree's C API (two numpy copies) and through embreex's
+    own element-by-element copy give bit-identical hits, past degenerate triangles too."""
+    rng = np.random.default_rng(5)
+    tris = rng.uniform(-1, 1, (3000, 3, 3))
+    tris[::97, 2] = tris[::97, 1]  # degenerate: Embree's primID must be mapped back
+    mesh = core.TriangleMesh(tris.reshape(-1, 3), np.arange(tris.size // 3).reshape(-1, 3))
+    direct, copied = core.build(mesh, "embree"), core.build(mesh, "embree", direct_fill=False)
+    assert (direct.stats()["fill"], copied.stats()["fill"]) == ("direct", "embreex")
+    o, d = core.uniform_rays(mesh, 20000, seed=3)
+    a, b = direct.trace(o, d), copied.trace(o, d)
+    assert a.hit.mean() > 0.3
+    for field in ("t", "triangle", "u", "v"):
+        w = np.flatnonzero(getattr(a, field) != getattr(b, field))
+        assert w.size == 0, f"{field} differs at {describe_ray(w[0], o, d)}"
+    assert np.array_equal(direct.occluded(o, d, 0.0, 0.5), copied.occluded(o, d, 0.0, 0.5))
+
+
+@needs_embree
+def test_direct_fill_refuses_a_scene_it_cannot_vouch_for():
+    """The handles are read only from an embreex scene made with the device given, and
+    confirmed by Embree; anything else leaves the scene untouched (the build then uses
+    embreex's copy)."""
+    from embreex import rtcore, rtcore_scene
+
+    from hybrid_raycast.core.embree import _DirectFill
+
+    direct = _DirectFill.get()
+    assert direct is not None, f"no usable libembree4 next to embreex ({_DirectFill.library_path()})"
+    device, other = rtcore.EmbreeDevice(), rtcore.EmbreeDevice()
+    scene = rtcore_scene.EmbreeScene(device)
+    assert direct.handles(scene, device) is not None
+    tri = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32)
+    for args in ((scene, other), (object(), device), (scene, object())):
+        assert direct.handles(*args) is None
+        assert direct.fill(*args, tri, np.array([[0, 1, 2]])) is False
+    one = np.array([[0.2, 0.2, 0.0]], np.float32)
+    assert scene.run(one, np.array([[0, 0, 1]], np.float32))[0] == -1, "a refused fill must write nothing"
+    assert direct.fill(scene, device, tri, np.array([[0, 1, 2]])) is True
+    assert scene.run(one, np.array([[0, 0, 1]], np.float32))[0] == 0
