@@ -3,8 +3,10 @@
 Every structure answers the two questions of pbrt's accelerators: the nearest hit
 (``trace``) and whether anything is hit at all (``occluded``).  This base class owns
 what they share: validating and preparing rays, bounded chunks so memory stays flat
-as the ray count grows, and an optional thread pool over chunks (numpy releases the
-GIL inside most ufuncs, so chunks overlap on several cores).
+as the ray count grows, and an optional thread pool (numpy releases the GIL inside most
+ufuncs, so threads overlap on several cores): one chunk per thread, or, for the lockstep
+tracers (``shares_chunks``), all threads inside each chunk, drawing rays from one
+``RaySupply``.
 """
 
 from __future__ import annotations
@@ -109,18 +111,12 @@ class Accel:
         return np.concatenate(self._map_chunks(self._occluded_rays, rays))
 
     def _chunk_bounds(self, m: int) -> list[tuple[int, int]]:
-        if self.shares_chunks:  # every thread works on every chunk: no split for threads
-            n = -(-m // self.chunk_size)
-            edges = [m * i // n for i in range(n + 1)]
-            return list(zip(edges[:-1], edges[1:]))
-        return self._thread_chunk_bounds(m)
-
-    def _thread_chunk_bounds(self, m: int) -> list[tuple[int, int]]:
-        """At most ``chunk_size`` rays a chunk, the count a multiple of ``threads`` (when
-        each chunk keeps ``MIN_SPLIT`` rays: a small batch is not worth a thread pool) and
-        the sizes equal within one ray, so that no thread is left alone with the last chunk."""
+        """At most ``chunk_size`` rays a chunk, the sizes equal within one ray.  With one chunk
+        per thread (not ``shares_chunks``) the count is a multiple of ``threads`` (when each
+        chunk keeps ``MIN_SPLIT`` rays: a small batch is not worth a thread pool), so that no
+        thread is left alone with the last chunk."""
         n = -(-m // self.chunk_size)
-        if self.threads > 1 and n % self.threads:
+        if self.threads > 1 and n % self.threads and not self.shares_chunks:
             n = max(n, min(-(-n // self.threads) * self.threads, m // MIN_SPLIT))
         edges = [m * i // n for i in range(n + 1)]
         return list(zip(edges[:-1], edges[1:]))
