@@ -504,6 +504,8 @@ class _DirectFill:
         """(RTCScene, RTCDevice) of an embreex scene and the device it was made with, or None
         when the layout is not the one described in the class docstring."""
         rtcore, rtcore_scene, _ = _import_embreex()
+        if sys.implementation.name != "cpython":  # id() is an object's address only in CPython
+            return None
         if (type(scene) is not rtcore_scene.EmbreeScene or type(device) is not rtcore.EmbreeDevice
                 or type(scene).__basicsize__ != self.SCENE_SIZE or type(device).__basicsize__ != self.DEVICE_SIZE):
             return None
