@@ -40,7 +40,7 @@ this wrapper does about it:
   buffers element by element through untyped (Python-level) indexing
   (``_build_from_indices``): at 1.1M triangles 1.5-1.7 s, four times Embree's own BVH
   build, and most of the build's scatter.  So the geometry is filled through Embree's C
-  API instead (``_DirectFill``: ctypes on the libembree4 embreex itself loaded, two
+  API instead (``_DirectFill``: ctypes on the Embree embreex's own calls reach, two
   numpy copies into the buffers of ``rtcSetNewGeometryBuffer``; 10 ms there), on the
   scene embreex made, whose handle it reads from the scene object (the layout is
   checked, and Embree must confirm the handle, before anything is written).
@@ -414,9 +414,10 @@ class _DirectFill:
     returns the device handle.  If any check fails it returns False and the caller uses
     ``TriangleMesh``; an Embree error after the checks is raised.
 
-    The library is the libembree4 file shipped beside embreex (``embreex.libs`` on Linux
-    and Windows, ``.dylibs`` on macOS); loading that same path again returns the library
-    already loaded, so the handles belong to it.
+    The library is the one embreex's calls reach (``library``): an Embree the program
+    itself exports (Debian's Blender), else the libembree4 file shipped beside embreex
+    (``embreex.libs`` on Linux and Windows, ``.dylibs`` on macOS), whose path, loaded again,
+    gives the library already loaded.
     """
 
     _instance: "_DirectFill | None | bool" = False  # False: not looked for yet
@@ -451,13 +452,31 @@ class _DirectFill:
         """The one instance, or None when the library or the expected layout is not there."""
         if cls._instance is False:
             cls._instance = None
-            path = cls.library_path()
-            if path is not None:
-                try:
-                    cls._instance = cls(ctypes.CDLL(path))
-                except (OSError, AttributeError):  # not loadable, or a symbol missing
-                    pass
+            try:
+                lib = cls.library()
+                if lib is not None:
+                    cls._instance = cls(lib)
+            except (OSError, AttributeError):  # not loadable, or a symbol missing
+                pass
         return cls._instance
+
+    @classmethod
+    def library(cls):
+        """The Embree that embreex's own calls reach (a ctypes library), or None.
+
+        On Linux a library's undefined symbols bind to the first definition in the global
+        scope (the program and what it loaded with RTLD_GLOBAL) before its own dependencies.
+        Debian's Blender links the system libembree4 for Cycles, so there embreex's calls go
+        to that one, not to the copy in its wheel; a device made by one must not be handed to
+        the other (rtcNewGeometry of the wheel's copy on such a device crashed Blender
+        4.3.2).  So the global scope is asked first, the wheel's file after; Windows and
+        macOS bind each import to the library it was linked with, the wheel's."""
+        if sys.platform.startswith("linux"):
+            scope = ctypes.CDLL(None)
+            if hasattr(scope, "rtcNewGeometry"):
+                return scope
+        path = cls.library_path()
+        return None if path is None else ctypes.CDLL(path)
 
     @staticmethod
     def library_path() -> str | None:
@@ -485,6 +504,8 @@ class _DirectFill:
         """(RTCScene, RTCDevice) of an embreex scene and the device it was made with, or None
         when the layout is not the one described in the class docstring."""
         rtcore, rtcore_scene, _ = _import_embreex()
+        if sys.implementation.name != "cpython":  # id() is an object's address only in CPython
+            return None
         if (type(scene) is not rtcore_scene.EmbreeScene or type(device) is not rtcore.EmbreeDevice
                 or type(scene).__basicsize__ != self.SCENE_SIZE or type(device).__basicsize__ != self.DEVICE_SIZE):
             return None
