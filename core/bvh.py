@@ -435,6 +435,7 @@ class BVH(Accel):
 
     kind = "bvh"
     chunk_size = 1 << 20
+    shares_chunks = True  # the threads trace each chunk together (``Accel._shared``)
 
     def __init__(self, mesh, *, builder: str = "hlbvh", leaf_size: int = 4, sah_bins: int = 16, cluster_bits: int = 6,
                  sah_min: int = 0, batch: int = 65536, **kw):
@@ -494,8 +495,6 @@ class BVH(Accel):
     def occluded(self, *args, **kw):
         self._counters = []
         return super().occluded(*args, **kw)
-
-    shares_chunks = True
 
     def _trace_rays(self, rays: Rays):
         best = NearestHits(len(rays))

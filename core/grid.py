@@ -182,6 +182,7 @@ class UniformGrid(Accel):
 
     kind = "grid"
     chunk_size = 1 << 20
+    shares_chunks = True  # the threads trace each chunk together (``Accel._shared``)
 
     def __init__(self, mesh, *, density: float = 2.0, max_cells: int = 1 << 24, margin: float = 1e-3,
                  pair_cap: int = 1 << 17, prefilter: bool = True, skip: bool = True, pool: int = 1 << 17, **kw):
@@ -443,8 +444,6 @@ class UniformGrid(Accel):
         I[1:4] = (step * self.stride).T
         I[4] = live
         return F, I
-
-    shares_chunks = True
 
     def _traverse(self, rays: Rays, any_hit: bool):
         """Amanatides-Woo 3D-DDA of one chunk: the nearest hits (``Hits``) or the any-hit mask."""
