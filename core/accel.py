@@ -34,6 +34,11 @@ def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))
 
 
+def even_parts(m: int, n: int) -> list[slice]:
+    """``range(m)`` cut into ``n`` consecutive slices whose sizes differ by at most one."""
+    return [slice(m * i // n, m * (i + 1) // n) for i in range(n)]
+
+
 class RaySupply:
     """The rays of one chunk handed out in consecutive slices to the threads tracing it
     together (``Accel.shares_chunks``): every thread refills its lockstep pool from here as
@@ -118,8 +123,7 @@ class Accel:
         n = -(-m // self.chunk_size)
         if self.threads > 1 and n % self.threads and not self.shares_chunks:
             n = max(n, min(-(-n // self.threads) * self.threads, m // MIN_SPLIT))
-        edges = [m * i // n for i in range(n + 1)]
-        return list(zip(edges[:-1], edges[1:]))
+        return [(p.start, p.stop) for p in even_parts(m, n)]
 
     def _map_chunks(self, fn, rays: Rays):
         chunks = [rays.subset(slice(a, b)) for a, b in self._chunk_bounds(len(rays))]
@@ -142,8 +146,7 @@ class Accel:
         n = self._workers(len(rays))
         if n == 1:
             return shear_rays(rays)
-        m = len(rays)
-        parts = self._in_pool(shear_rays, [rays.subset(slice(m * i // n, m * (i + 1) // n)) for i in range(n)])
+        parts = self._in_pool(shear_rays, [rays.subset(p) for p in even_parts(len(rays), n)])
         return Rays(rays.origins, rays.directions, rays.tmin, rays.tmax,
                     *(np.concatenate([getattr(p, f) for p in parts]) for f in ("kx", "ky", "kz", "shear")))
 
@@ -158,8 +161,7 @@ class Accel:
         n = self._workers(m)
         if n == 1:
             return best.finish(rays, tri_vertices)
-        parts = self._in_pool(lambda sl: best.part(sl).finish(rays.subset(sl), tri_vertices),
-                              [slice(m * i // n, m * (i + 1) // n) for i in range(n)])
+        parts = self._in_pool(lambda sl: best.part(sl).finish(rays.subset(sl), tri_vertices), even_parts(m, n))
         return Hits(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "triangle", "u", "v")))
 
     def _in_pool(self, fn, items) -> list:

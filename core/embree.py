@@ -543,13 +543,15 @@ class _DirectFill:
                           casting="unsafe")
             lib.rtcCommitGeometry(geometry)
             lib.rtcAttachGeometry(scene_h, geometry)
-            self._check(device_h, True)
+            self._check(device_h)
         finally:
             lib.rtcReleaseGeometry(geometry)  # the scene keeps its own reference
         scene.is_committed = 0  # embreex's run commits (rebuilds) only when this is 0
         return True
 
-    def _check(self, device_h, result):
+    def _check(self, device_h, result=True):
+        """Raise Embree's pending error on ``device_h``, or an unknown one when ``result``
+        (a handle or pointer a call returned) is NULL."""
         code = self.lib.rtcGetDeviceError(device_h)
         if code or not result:
             what = self._ERRORS.get(code, f"error {code}")
