@@ -2,8 +2,8 @@
 break-even of the paper's evaluation.
 
 Timings: ``time.perf_counter`` around builds and traces, each batch traced as ``trace``
-runs it (``time_trace``).  The default 524,288 rays per scene fill both threads of every
-structure, so the per-ray constants are a large workload's (see ``RAYS_PER_SCENE``).
+runs it (``time_trace``).  The default 1,048,576 rays per scene (one chunk) fill both threads of
+every structure, so the per-ray constants are a large workload's (see ``RAYS_PER_SCENE``).
 """
 
 from __future__ import annotations
@@ -24,17 +24,21 @@ from .work import Work, grid_work
 from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break_even, fit, fit_counts, nlog2n
 
 #: rays per scene for each calibration scale.  A structure's time per ray falls with the
-#: batch's size (lockstep traversal ends in iterations over a few rays, whose cost is the
-#: same for any batch): measured at 22:17 on 2026-12-01, 131,072 rays cost 1.2-1.5x per ray
-#: what 1M rays do, 524,288 rays within 0-7% of 1M.  The default measures 524,288, so the
-#: constants are a large workload's, the ones a break-even of 10^5-10^6 rays is about
-RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 19, "rich": 1 << 19}
+#: batch's size: lockstep traversal ends in steps over the rays still in flight when the
+#: batch runs out (two threads' pools of them), a cost the same for any batch.  Measured on
+#: 2026-12-02 (3 interleaved repeats, 2 threads; sphere and city at 200k triangles, the
+#: Stanford bunny): 524,288 rays cost 1.06-1.13x per ray what 1M rays do for the grid,
+#: 0.95-1.13x for the BVH, and the held-out report, whose truths trace 1M rays, found the
+#: calibration's grid and BVH times per ray +9-10% high (median) when it measured 524,288.
+#: The default measures one full chunk of each structure (``chunk_size``, and api.CHUNK),
+#: so the constants are a large workload's, the ones a break-even of 10^5-10^6 rays is about
+RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 20, "rich": 1 << 20}
 #: sample sizes K at which calibration times the grid on each scene, to correct a plan's
 #: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
 SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
 #: the least number of rays the grid's large-workload time per ray is measured on when
 #: samples are timed (whatever the scale's rays per scene): the default scale's batch
-GRID_LARGE_RAYS = 1 << 19
+GRID_LARGE_RAYS = 1 << 20
 #: builds and traces of every structure per calibration scene, interleaved; the record
 #: keeps the medians (on this 2-core VM one trace moves by 20-40% between runs)
 CALIBRATION_REPEATS = 3
