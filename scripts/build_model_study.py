@@ -4,7 +4,10 @@ Refits saved calibrations with each candidate build model and judges it by leave
 the calibration scenes and on a report's held-out truths (each structure's build and time per
 ray, and the grid's work counts from the plan's sample), with the calibration's count models
 for the times per ray.  With two calibration files it also prints how far apart each fitted
-constant is (``cost.fit_constants``, ``CountFit.constants``), as ``report.py`` does.
+constant is (``cost.fit_constants``, ``CountFit.constants``), as ``report.py`` does.  The
+log-quadratic build (ln T_B = a + b u + c u^2, u = ln(N / N_REF)) also prints its three
+constants centred at N_REF (the build there, its exponent b, the curvature c) and its builds at
+``LOG_QUADRATIC_SIZES``, and with two files how far apart each of them is.
 
     .venv/bin/python scripts/build_model_study.py --report docs/report/report.json cal1.json cal2.json
 """
