@@ -4,7 +4,10 @@ Refits saved calibrations with each candidate build model and judges it by leave
 the calibration scenes and on a report's held-out truths (each structure's build and time per
 ray, and the grid's work counts from the plan's sample), with the calibration's count models
 for the times per ray.  With two calibration files it also prints how far apart each fitted
-constant is (``cost.fit_constants``, ``CountFit.constants``), as ``report.py`` does.
+constant is (``cost.fit_constants``, ``CountFit.constants``), as ``report.py`` does.  The
+log-quadratic build (ln T_B = a + b u + c u^2, u = ln(N / N_REF)) also prints its three
+constants centred at N_REF (the build there, its exponent b, the curvature c) and its builds at
+``LOG_QUADRATIC_SIZES``, and with two files how far apart each of them is.
 
     .venv/bin/python scripts/build_model_study.py --report docs/report/report.json cal1.json cal2.json
 """
@@ -28,7 +31,8 @@ core_package()
 from hybrid_raycast.core.decide import calfile, cost  # noqa: E402
 from hybrid_raycast.core.decide.evaluate import constants_apart, relative_difference as rel  # noqa: E402
 
-#: (label, model, build terms for 'terms' or None): the candidates of BENCHMARKS.md (issue 14)
+#: (label, model, build terms of the 'sum' form, or the form 'log-quadratic', or None):
+#: the candidates of BENCHMARKS.md (issue 14); n = N / N_REF, l = log2 N, u = ln(N / N_REF)
 CANDIDATES = [
     ("power c (N l)^p", "power", None),
     ("affine a + c N l", "affine", None),
@@ -37,20 +41,32 @@ CANDIDATES = [
     ("a + d (l-10) + c n (l-16)", "terms", ("1", "log2n-10", "n(log2n-16)")),
     ("b n + c n (l-16)", "terms", ("n", "n(log2n-16)")),
     ("a + d (l-10) + b n + c n (l-16)", "terms", ("1", "log2n-10", "n", "n(log2n-16)")),
+    ("ln T = a + b u + c u^2", "terms", "log-quadratic"),
 ]
 
 
 @contextmanager
 def build_terms(kind: str, names):
-    """``cost.BUILD_TERMS[kind] = names`` for the duration (None: leave it alone)."""
-    old = dict(cost.BUILD_TERMS)
-    if names is not None:
+    """``cost.BUILD_TERMS[kind] = names`` in the 'sum' form, or ``cost.BUILD_FORMS[kind] =
+    names`` for a form's name, for the duration (None: leave both alone)."""
+    old_terms, old_forms = dict(cost.BUILD_TERMS), dict(cost.BUILD_FORMS)
+    if isinstance(names, str):
+        cost.BUILD_FORMS[kind] = names
+    elif names is not None:
         cost.BUILD_TERMS[kind] = tuple(names)
+        cost.BUILD_FORMS[kind] = "sum"
     try:
         yield
     finally:
         cost.BUILD_TERMS.clear()
-        cost.BUILD_TERMS.update(old)
+        cost.BUILD_TERMS.update(old_terms)
+        cost.BUILD_FORMS.clear()
+        cost.BUILD_FORMS.update(old_forms)
+
+
+#: three sizes the log-quadratic build is also stated at (three times are its three
+#: constants): the small, middle and large end of the calibration scenes
+LOG_QUADRATIC_SIZES = (1_024, 32_768, 1_048_576)
 
 
 def med_abs(v) -> float:
@@ -120,6 +136,19 @@ def main(argv=None) -> int:
                          if n in cb and (n.startswith("build") or n in ("c_B", "a_B", "p_B"))]
                 line += f" | {max(apart):.1f}" if apart else " | -"
             print(f"{label:34s} | {line}")
+            if terms == "log-quadratic":
+                for r in rows:
+                    k = cost.fit_coefficients(r["fit"], model)
+                    if "build curvature" in k:
+                        print(f"{'':34s}   centred at N_REF = {cost.N_REF:,}: build {k['build at N_REF'] * 1e3:.2f} ms, "
+                              f"exponent b {k['build exponent at N_REF']:.4f}, curvature c {k['build curvature']:.5f}; "
+                              + ", ".join(f"{n:,}: {cost.MODELS[model][1](r['fit'], kind, n).build * 1e3:.3g} ms"
+                                          for n in LOG_QUADRATIC_SIZES))
+                if len(rows) == 2 and all("build curvature" in cost.fit_coefficients(r["fit"], model) for r in rows):
+                    ka, kb = (cost.fit_coefficients(r["fit"], model) for r in rows)
+                    ta, tb = ([cost.MODELS[model][1](r["fit"], kind, n).build for n in LOG_QUADRATIC_SIZES] for r in rows)
+                    print(f"{'':34s}   2 cal. apart: " + ", ".join(f"{n} {rel(v, kb[n]):.1f}" for n, v in ka.items())
+                          + "; builds at " + ", ".join(f"{n:,} {rel(x, y):.1f}" for n, x, y in zip(LOG_QUADRATIC_SIZES, ta, tb)))
     if len(cals) == 2:
         a, b = (c.refitted() for c in cals)
         apart = constants_apart(a, b)

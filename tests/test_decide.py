@@ -8,6 +8,7 @@ copy against hand-worked figures rather than keeping copies equal.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -506,6 +507,134 @@ def test_terms_model_spread_brackets_measured_over_fitted():
     e = cost.MODELS["terms"][1](f, "bvh", 200000)
     assert e.build_low < e.build < e.build_high
     assert e.build_low / e.build == pytest.approx(f.c_B_low / f.c_B, rel=1e-12)
+
+
+# -- Embree's build: ln T_B = a + b u + c u^2, u = ln(N / N_REF) -----------------------------
+
+def _logquad_law(n, a=math.log(0.017), b=0.92, c=0.066):
+    """A build that is exactly exp(a + b u + c u^2) with u = ln(N / 65,536): 17 ms at 65,536
+    triangles, exponent 0.92 there, growing by 2c per e-fold of N (Embree's shape)."""
+    u = math.log(n / 65536)
+    return math.exp(a + b * u + c * u * u)
+
+
+def _logquad_records(law=_logquad_law, ns=(500, 2000, 8000, 30000, 120000, 500000, 1000000)):
+    return [SceneRecord(f"s{n}", n, 1000, {"embree": Measurement(law(n), 1000 * 1e-8 * math.log2(n) ** 1.5, 1000)})
+            for n in ns]
+
+
+def test_log_quadratic_build_recovers_exact_constants_and_estimates_the_formula():
+    """On builds that are exactly exp(a + b u + c u^2), Embree's 'terms' fit (BUILD_FORMS says
+    'log-quadratic') returns (a, b, c) centred at N_REF, c_B = exp(a) is the build at 65,536
+    triangles, no interval without scatter, and the estimate at any N in the fitted range is the
+    formula; the constants are the builds at BUILD_ANCHORS and the coefficients exp(a), b, c."""
+    assert cost.BUILD_FORMS["embree"] == "log-quadratic"
+    f = cost.fit(_logquad_records(), ("embree",), model="terms")["embree"]
+    assert f.extra["form_B"] == "log-quadratic"
+    assert f.extra["coef_B"] == pytest.approx([math.log(0.017), 0.92, 0.066], rel=1e-9)
+    assert (f.extra["n_min"], f.extra["n_max"]) == (500, 1000000)
+    assert (f.c_B, f.c_B_low, f.c_B_high) == pytest.approx((0.017, 0.017, 0.017), rel=1e-9)
+    est = cost.MODELS["terms"][1]
+    for n in (500, 777, 12345, 65536, 400000, 1000000):
+        assert est(f, "embree", n).build == pytest.approx(_logquad_law(n), rel=1e-9)
+    # 262,144 = 4 x 65,536 by hand: u = ln 4, T = 0.017 x 4^0.92 x exp(0.066 (ln 4)^2)
+    assert est(f, "embree", 262144).build == pytest.approx(0.017 * 4 ** 0.92 * math.exp(0.066 * math.log(4) ** 2), rel=1e-9)
+    # per ray: the power model's, stated at log2 N = 16
+    assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-8 * 16 ** 1.5, 1.5), rel=1e-9)
+    # 1,048,576 lies above the largest scene: the slope there carries on (tested below), so the
+    # anchors are checked on the estimate, the ones inside the range on the formula too
+    anchors = {f"build at {n:,}": est(f, "embree", n).build for n in cost.BUILD_ANCHORS}
+    assert anchors["build at 16,384"] == pytest.approx(_logquad_law(16384), rel=1e-9)
+    assert cost.fit_constants(f, "terms", per_ray=False) == pytest.approx(anchors, rel=1e-12)
+    assert cost.fit_coefficients(f, "terms") == pytest.approx(
+        {"build at N_REF": 0.017, "build exponent at N_REF": 0.92, "build curvature": 0.066}, rel=1e-9)
+    assert "(N / 65,536)^(0.920 + 0.0660 u)" in cost.describe_fit(f, "terms")
+
+
+def test_log_quadratic_build_is_the_parabola_in_log_space_with_scatter():
+    """With scatter the fit is the least-squares parabola through (ln N, ln T_B): numpy.polyfit
+    on the uncentred ln N as the independent reference predicts the same builds (centring at
+    N_REF changes the constants, never a prediction), its curvature is the same, its other two
+    constants are the centred ones moved to N = 1; the interval is the 10th/90th percentile of
+    measured / fitted."""
+    rng = np.random.default_rng(3)
+    recs = _logquad_records()
+    q = rng.uniform(0.8, 1.25, len(recs))
+    for r, x in zip(recs, q):
+        r.kinds["embree"].build_time *= x
+    f = cost.fit(recs, ("embree",), model="terms")["embree"]
+    ln_n = np.log([r.triangles for r in recs])
+    y = np.log([r.kinds["embree"].build_time for r in recs])
+    ref = np.polyfit(ln_n, y, 2)
+    est = cost.MODELS["terms"][1]
+    for n in (500, 7000, 65536, 300000, 1000000):
+        assert est(f, "embree", n).build == pytest.approx(math.exp(np.polyval(ref, math.log(n))), rel=1e-9)
+    a, b, c = f.extra["coef_B"]
+    l0 = math.log(65536)
+    assert (ref[0], ref[1], ref[2]) == pytest.approx((c, b - 2 * c * l0, a - b * l0 + c * l0 * l0), rel=1e-9)
+    ratio = [r.kinds["embree"].build_time / math.exp(np.polyval(ref, v)) for r, v in zip(recs, ln_n)]
+    lo, hi = np.percentile(ratio, (10, 90))
+    assert f.c_B == pytest.approx(math.exp(a), rel=1e-9)
+    assert (f.c_B_low, f.c_B_high) == pytest.approx((f.c_B * min(lo, 1), f.c_B * max(hi, 1)), rel=1e-9)
+
+
+def test_log_quadratic_build_below_the_smallest_scene_is_the_smallest_scenes():
+    f = cost.fit(_logquad_records(), ("embree",), model="terms")["embree"]
+    assert cost.MODELS["terms"][1](f, "embree", 3).build == pytest.approx(_logquad_law(500), rel=1e-9)
+
+
+def test_log_quadratic_build_never_falls_with_n_up_to_100m_triangles():
+    """A parabola that turns inside the fitted range (c < 0: vertex at u = -b / 2c = ln 8, i.e.
+    524,288 triangles) stays at its top beyond it; one whose minimum is inside the range (c > 0,
+    vertex at 4,096 triangles) stays at its bottom below it; above the largest scene the build
+    goes on with the parabola's slope there (here 0.9 + 2 x 0.03 x ln(1M / 65,536), by hand).
+    Every estimate from 1 to 100M triangles is non-decreasing in N."""
+    est = cost.MODELS["terms"][1]
+    sizes = np.unique(np.geomspace(1, 1e8, 400).astype(np.int64))
+    turning = lambda n: _logquad_law(n, b=0.5, c=-0.25 / math.log(8))  # noqa: E731
+    rising_late = lambda n: _logquad_law(n, b=0.5, c=0.25 / math.log(16))  # noqa: E731
+    for law in (turning, rising_late, _logquad_law):
+        f = cost.fit(_logquad_records(law), ("embree",), model="terms")["embree"]
+        b = [est(f, "embree", int(n)).build for n in sizes]
+        assert all(x <= y * (1 + 1e-12) for x, y in zip(b, b[1:])), "the build estimate falls somewhere"
+    f = cost.fit(_logquad_records(turning), ("embree",), model="terms")["embree"]
+    top = turning(524288)
+    assert [est(f, "embree", n).build for n in (524288, 1000000, 10 ** 8)] == pytest.approx([top] * 3, rel=1e-9)
+    f = cost.fit(_logquad_records(rising_late), ("embree",), model="terms")["embree"]
+    assert [est(f, "embree", n).build for n in (500, 2000, 4096)] == pytest.approx([rising_late(4096)] * 3, rel=1e-9)
+    f = cost.fit(_logquad_records(), ("embree",), model="terms")["embree"]
+    u_max = math.log(1000000 / 65536)
+    slope = 0.92 + 2 * 0.066 * u_max
+    for n in (2_000_000, 10 ** 8):
+        want = _logquad_law(1000000) * (n / 1000000) ** slope
+        assert est(f, "embree", n).build == pytest.approx(want, rel=1e-9)
+        assert est(f, "embree", n).build < _logquad_law(n)  # the parabola itself would bend up faster
+
+
+def test_log_quadratic_build_survives_save_and_load_and_old_files_estimate_as_before(tmp_path):
+    """A calibration file round-trips the log-quadratic build (same estimates after load); a
+    'terms' fit written before the form (no form_B: a sum of terms_B) still estimates its sum;
+    an unknown form or a short coefficient list is a CalibrationError naming the structure."""
+    from hybrid_raycast.core.decide import CalibrationError, load
+
+    recs = _logquad_records()
+    cal = Calibration(cost.fit(recs, ("embree",), model="terms"), scenes=recs, source="hand")
+    back = load(cal.save(tmp_path / "c.json"))
+    assert back.fits == cal.fits
+    for n in (100, 5000, 65536, 3_000_000):
+        assert back.estimate("embree", n).build == pytest.approx(cal.estimate("embree", n).build, rel=1e-12)
+    assert back.refitted().fits["embree"].extra["coef_B"] == pytest.approx(cal.fits["embree"].extra["coef_B"], rel=1e-12)
+    old = cost.KindFit(0.159, 1e-7, 0.159, 0.159, 1e-7, 1e-7, 7,
+                       extra={"terms_B": ["1", "log2n-10", "n", "n(log2n-16)"], "coef_B": [0.015, 0.004, 0.12, 0.015],
+                              "n_min": 500, "p_R": 1.0, "x_ref_R": 16.0})
+    old_back = load(Calibration({"embree": old}, source="hand").save(tmp_path / "old.json"))
+    assert old_back.estimate("embree", 65536).build == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
+    for extra, what in (({"form_B": "cubic"}, "unknown build form 'cubic' of 'embree'"),
+                        ({"coef_B": [1.0, 2.0]}, "three finite coefficients")):
+        d = cal.to_dict()
+        d["fits"]["embree"]["extra"].update(extra)
+        with pytest.raises(CalibrationError, match=re.escape(what)):
+            Calibration.from_dict(d)
 
 
 def test_stating_constants_at_a_reference_changes_no_prediction():

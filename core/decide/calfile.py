@@ -29,7 +29,9 @@ from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, Ki
 #: bump when the JSON layout or the meaning of a field changes.  3 (issue 14): constants
 #: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
 #: and the 'terms' build model; a file of format 2 has neither field and reads with its old
-#: meaning (reference 1 or 0), so it still loads
+#: meaning (reference 1 or 0), so it still loads.  A 'terms' fit's ``form_B`` names its build
+#: form ('log-quadratic'); a fit without it is a sum of ``terms_B`` (``cost.BUILD_FORMS``),
+#: so files written before the log-quadratic form estimate as they did
 CALIBRATION_FORMAT = 3
 READABLE_FORMATS = (2, 3)
 #: the constants shipped with the package, measured by ``calibrate()`` on the default set
@@ -248,6 +250,7 @@ class Calibration:
                 raise CalibrationError(f"constants of {k!r} are not finite non-negative numbers: {vals}")
             if not (f.c_B_low <= f.c_B <= f.c_B_high and f.c_R_low <= f.c_R <= f.c_R_high):
                 raise CalibrationError(f"interval of {k!r} does not contain its constants")
+            _check_build_form(k, f.extra)
         return cal
 
     @classmethod
@@ -265,6 +268,23 @@ class Calibration:
         with atomic_path(path) as tmp:
             Path(tmp).write_text(self.to_json(), encoding="utf-8")
         return path
+
+
+def _check_build_form(kind: str, extra: dict) -> None:
+    """A 'terms' fit's build form is one this package estimates, with its coefficients."""
+    form = extra.get("form_B")
+    if form is None:
+        return
+    if form != "log-quadratic":
+        raise CalibrationError(f"unknown build form {form!r} of {kind!r} (this package knows 'log-quadratic' "
+                               "and the sum of terms_B)")
+    coef, n_min, n_max = extra.get("coef_B"), extra.get("n_min"), extra.get("n_max")
+    if not (isinstance(coef, list) and len(coef) == 3
+            and all(isinstance(c, (int, float)) and math.isfinite(c) for c in coef)):
+        raise CalibrationError(f"the log-quadratic build of {kind!r} needs three finite coefficients, found {coef!r}")
+    if not (isinstance(n_min, int) and isinstance(n_max, int) and 0 < n_min <= n_max):
+        raise CalibrationError(f"the log-quadratic build of {kind!r} needs its fitted sizes 0 < n_min <= n_max, "
+                               f"found {n_min!r}, {n_max!r}")
 
 
 def load(path, *, check_version: bool = True) -> Calibration:
