@@ -18,7 +18,7 @@ ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
 # This machine's package (the real-Blender suite installs it).
 ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-fast test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-distributed bench-scan report clean
+.PHONY: demo test test-fast test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan report clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -99,6 +99,11 @@ bench-extract: $(VENV)/.stamp
 ## The older per-size table against all of Blender's peers: .venv/bin/python scripts/bench_trace.py --help
 bench-trace: $(VENV)/.stamp $(O3D_VENV)/.stamp
 	$(PY) scripts/bench_trace.py --engines $(BENCH_ARGS)
+
+## 1 -> 2 threads of the numpy BVH and grid on the engine scenes, 1M rays, in adjacent pairs (about 6
+## minutes; run it as `flock /tmp/hrc-bench.lock make bench-threads`).  BENCH_ARGS=--kinds bvh,grid,embree ...
+bench-threads: $(VENV)/.stamp
+	$(PY) scripts/bench_threads.py $(BENCH_ARGS)
 
 ## Open3D 0.20 for the benchmark only, in its own venv: it needs numpy 2, which bpy 5.0.1 excludes.
 ## Its import needs Debian's libusb-1.0-0 (apt-get install -y libusb-1.0-0).
