@@ -347,8 +347,9 @@ def _log_quadratic_value(coef, n_min: float, n_max: float, n: float) -> float:
     return math.exp(a + b * uc + c * uc * uc + max(b + 2 * c * q, 0.0) * max(u - q, 0.0))
 
 
-def _fit_log_quadratic(records: list[SceneRecord], kind: str, spread, power: KindFit) -> KindFit:
-    """ln T_B ~ a + b u + c u^2, u = ln(N / N_REF), by least squares on ln T_B (every
+def _fit_log_quadratic(have: list[SceneRecord], kind: str, spread, power: KindFit) -> KindFit:
+    """``have``: the scenes with a measured build of ``kind`` (``_fit_terms`` chose them).
+    ln T_B ~ a + b u + c u^2, u = ln(N / N_REF), by least squares on ln T_B (every
     residual a relative one; no sign constraint, so no term is dropped in one calibration
     and kept in the next).  Centred at N_REF: exp(a) is the build of an N_REF-triangle
     scene (c_B), b the build's exponent there (d ln T_B / d ln N), 2c how that exponent
@@ -356,7 +357,6 @@ def _fit_log_quadratic(records: list[SceneRecord], kind: str, spread, power: Kin
     500 triangles towards a slowly growing per-triangle cost at 1M: a curve in log-log
     that a quadratic follows.  The estimate is ``_log_quadratic_value`` (monotone); the
     interval scales it by the spread of measured / fitted over the scenes."""
-    have = [r for r in records if kind in r.kinds and r.kinds[kind].build_time > 0]
     ns = [r.triangles for r in have]
     y = np.array([r.kinds[kind].build_time for r in have])
     u = np.log(np.asarray(ns, np.float64) / N_REF)
@@ -391,7 +391,7 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
     if names is None or len(have) < len(names) + 1 or not _spans(ns, TERMS_MIN_RATIO):
         return power  # not a terms structure, or too few scenes or sizes to weigh its terms
     if form == "log-quadratic":
-        return _fit_log_quadratic(records, kind, spread, power)
+        return _fit_log_quadratic(have, kind, spread, power)
     if form != "sum":
         raise ValueError(f"unknown build form {form!r} for {kind!r}; expected 'sum' or 'log-quadratic'")
     y = np.array([r.kinds[kind].build_time for r in have])
