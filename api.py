@@ -26,15 +26,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import core
+from .core.accel import LOCKSTEP_CHUNK
 
 __all__ = ["CastResult", "AllHits", "cast", "occluded", "cast_all", "STRUCTURES"]
 
 STRUCTURES = ("auto", "grid", "bvh", "embree")
 #: rays per chunk: bounds the working memory of a cast (about 0.3 KiB a ray in flight).  One
-#: chunk of the numpy structures (their ``chunk_size``): each chunk ends in steps over the rays
-#: still in flight, so half a chunk cost 5-13% more per ray (core/decide/measurements.py,
+#: chunk of the numpy structures (``core.accel.LOCKSTEP_CHUNK``): each chunk ends in steps over
+#: the rays still in flight, so half a chunk cost 5-13% more per ray (core/decide/measurements.py,
 #: RAYS_PER_SCENE, which calibrates on the same batch)
-CHUNK = 1 << 20
+CHUNK = LOCKSTEP_CHUNK
 
 
 @dataclass

@@ -29,6 +29,12 @@ from .mesh import TriangleMesh
 #: sphere, grid and BVH); from 65,536 rays a chunk the split no longer loses (BENCHMARKS.md)
 MIN_SPLIT = 1 << 16
 
+#: rays per chunk of the lockstep tracers (the numpy BVH and grid, ``chunk_size``).  Each
+#: chunk ends in steps over the rays still in flight, so a cast pays that once per chunk:
+#: api.cast traces in chunks of this size and the calibration times batches of it
+#: (decide/measurements.py, RAYS_PER_SCENE), so its constants are what a large cast pays
+LOCKSTEP_CHUNK = 1 << 20
+
 
 def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))

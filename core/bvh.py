@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .accel import Accel
+from .accel import LOCKSTEP_CHUNK, Accel
 from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F32 = np.float32
@@ -434,7 +434,7 @@ class BVH(Accel):
     """
 
     kind = "bvh"
-    chunk_size = 1 << 20
+    chunk_size = LOCKSTEP_CHUNK
     shares_chunks = True  # the threads trace each chunk together (``Accel._shared``)
 
     def __init__(self, mesh, *, builder: str = "hlbvh", leaf_size: int = 4, sah_bins: int = 16, cluster_bits: int = 6,

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .accel import Accel
+from .accel import LOCKSTEP_CHUNK, Accel
 from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F64 = np.float64
@@ -181,7 +181,7 @@ class UniformGrid(Accel):
     """
 
     kind = "grid"
-    chunk_size = 1 << 20
+    chunk_size = LOCKSTEP_CHUNK
     shares_chunks = True  # the threads trace each chunk together (``Accel._shared``)
 
     def __init__(self, mesh, *, density: float = 2.0, max_cells: int = 1 << 24, margin: float = 1e-3,

@@ -16,7 +16,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from ..accel import Accel
+from ..accel import LOCKSTEP_CHUNK, Accel
 from ..factory import build
 from ..mesh import TriangleMesh
 from .calfile import Calibration
@@ -30,15 +30,16 @@ from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break
 #: Stanford bunny): 524,288 rays cost 1.06-1.13x per ray what 1M rays do for the grid,
 #: 0.95-1.13x for the BVH, and the held-out report, whose truths trace 1M rays, found the
 #: calibration's grid and BVH times per ray +9-10% high (median) when it measured 524,288.
-#: The default measures one full chunk of each structure (``chunk_size``, and api.CHUNK),
-#: so the constants are a large workload's, the ones a break-even of 10^5-10^6 rays is about
-RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": 1 << 20, "rich": 1 << 20}
+#: The default measures one full chunk of the lockstep tracers (``LOCKSTEP_CHUNK``, also
+#: api.CHUNK), so the constants are a large workload's, the ones a break-even of 10^5-10^6
+#: rays is about
+RAYS_PER_SCENE = {"tiny": 2000, "quick": 20000, "default": LOCKSTEP_CHUNK, "rich": LOCKSTEP_CHUNK}
 #: sample sizes K at which calibration times the grid on each scene, to correct a plan's
 #: K-ray sample for the fixed per-batch cost of lockstep traversal (see grid_sample_ratio)
 SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
 #: the least number of rays the grid's large-workload time per ray is measured on when
 #: samples are timed (whatever the scale's rays per scene): the default scale's batch
-GRID_LARGE_RAYS = 1 << 20
+GRID_LARGE_RAYS = LOCKSTEP_CHUNK
 #: builds and traces of every structure per calibration scene, interleaved; the record
 #: keeps the medians (on this 2-core VM one trace moves by 20-40% between runs)
 CALIBRATION_REPEATS = 3
