@@ -14,8 +14,9 @@ pool over 64k-ray chunks, and one thread), ``core.build(mesh, 'embree')`` with i
 defaults, with threads=1 and with robust=False (Open3D's scene flags), the numpy BVH and
 grid (on the pool and on 1 thread), Blender's BVHTree loop (on a strided subset) and
 Open3D's ``RaycastingScene.cast_rays``, which runs in its own venv (``.venv-open3d``;
-scripts/bench_open3d.py) on the same rays saved to a temporary directory.  Columns: build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and
-the share of rays that hit the same triangle as raw embreex.
+scripts/bench_open3d.py) on the same rays saved to a temporary directory.  Columns:
+build s, Mrays/s, ratios to raw embreex and to Open3D, hit %, and the share of rays that
+hit the same triangle as raw embreex.
 
 The per-size table (the default):
 
