@@ -611,6 +611,19 @@ def test_log_quadratic_build_never_falls_with_n_up_to_100m_triangles():
         assert est(f, "embree", n).build < _logquad_law(n)  # the parabola itself would bend up faster
 
 
+def test_an_unknown_build_form_is_an_error_even_for_a_structure_without_build_terms(monkeypatch):
+    """A misspelt BUILD_FORMS entry stops the fit, also for a structure with no BUILD_TERMS
+    (Embree), which would otherwise pass silently as the power model; a structure in neither
+    table still gets the power model."""
+    recs = _logquad_records()
+    monkeypatch.setitem(cost.BUILD_FORMS, "embree", "log-quadratc")
+    with pytest.raises(ValueError, match="unknown build form 'log-quadratc' for 'embree'"):
+        cost.fit(recs, ("embree",), model="terms")
+    monkeypatch.delitem(cost.BUILD_FORMS, "embree")
+    f = cost.fit(recs, ("embree",), model="terms")["embree"]
+    assert "coef_B" not in f.extra and "p_B" in f.extra
+
+
 def test_log_quadratic_build_survives_save_and_load_and_old_files_estimate_as_before(tmp_path):
     """A calibration file round-trips the log-quadratic build (same estimates after load); a
     'terms' fit written before the form (no form_B: a sum of terms_B) still estimates its sum;

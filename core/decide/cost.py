@@ -385,6 +385,8 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
     less than TERMS_MIN_RATIO, it is the power model."""
     power = _fit_power(records, kind, spread)
     form = BUILD_FORMS.get(kind, "sum")
+    if form not in ("sum", "log-quadratic"):  # before any fallback, so a typo never passes as the power model
+        raise ValueError(f"unknown build form {form!r} for {kind!r}; expected 'sum' or 'log-quadratic'")
     names = ("1", "u", "u^2") if form == "log-quadratic" else BUILD_TERMS.get(kind)
     have = [r for r in records if kind in r.kinds and r.kinds[kind].build_time > 0]
     ns = [r.triangles for r in have]
@@ -392,8 +394,6 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
         return power  # not a terms structure, or too few scenes or sizes to weigh its terms
     if form == "log-quadratic":
         return _fit_log_quadratic(have, kind, spread, power)
-    if form != "sum":
-        raise ValueError(f"unknown build form {form!r} for {kind!r}; expected 'sum' or 'log-quadratic'")
     y = np.array([r.kinds[kind].build_time for r in have])
     x = np.array([[build_terms(n)[k] for k in names] for n in ns])
     b = nonneg_relative_lsq(x, y)
