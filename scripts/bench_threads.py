@@ -14,17 +14,27 @@ of 983,040 triangles, Suzanne at level 5 of 1,007,616; uniform random and pinhol
 rays), each structure built once per thread count.  'CPU / wall' is the 2-thread trace's
 process CPU time over its wall time (about 1.9 when both threads run the whole time).
 Run it alone (the bench lock), as every timing here.
+
+With ``--ceiling`` (the default) each repeat is a triple: beside the 1-thread and the
+2-thread trace, two separate processes (spawned, nothing shared, so no GIL between them)
+each trace half of the same rays (every other ray) on one thread at the same moment.  The
+1-thread time over that pair's time is what the machine's two cores give this structure's
+work with no Python in the way, measured in the same minute as the threads: the hardware's
+ceiling for the 2-thread ratio.  '2T / ceiling' is the share of it the threads reach.
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
+import multiprocessing
 import os
 import statistics
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _package import core_package  # noqa: E402
@@ -49,22 +59,84 @@ def timed(acc, o, d) -> tuple[float, float]:
     return time.perf_counter() - t0, time.process_time() - c0
 
 
-def pairs(mesh, kind, o, d, n) -> dict:
-    """``n`` adjacent (1-thread, 2-thread) traces of the same rays, order alternating."""
+def _half_tracer(conn, mesh, kind, o, d):
+    """A ceiling process: build ``kind`` on one thread, then trace its rays at each 'go'."""
+    acc = core.build(mesh, kind, threads=1)
+    timed(acc, o[:65536], d[:65536])  # first-call costs
+    conn.send("ready")
+    while conn.recv() == "go":
+        conn.send(timed(acc, o, d)[0])
+    conn.close()
+
+
+class ProcessPair:
+    """Two spawned processes, each with its own structure and half the rays (every other
+    ray, so each half is the same mix), tracing at the same moment when ``run`` is called."""
+
+    def __init__(self, mesh, kind, o, d):
+        ctx = multiprocessing.get_context("spawn")  # not fork: the parent's threads (Embree's among them) stay behind
+        self.conns, self.procs = [], []
+        for h in (0, 1):
+            mine, theirs = ctx.Pipe()
+            p = ctx.Process(target=_half_tracer, daemon=True,
+                            args=(theirs, mesh, kind, np.ascontiguousarray(o[h::2]), np.ascontiguousarray(d[h::2])))
+            p.start()
+            self.conns.append(mine)
+            self.procs.append(p)
+        for c in self.conns:
+            if c.recv() != "ready":
+                raise RuntimeError("a ceiling process did not start")
+
+    def run(self) -> tuple[float, float]:
+        """(wall s until both halves are traced, the faster half's s)."""
+        t0 = time.perf_counter()
+        for c in self.conns:
+            c.send("go")
+        each = [c.recv() for c in self.conns]
+        return time.perf_counter() - t0, min(each)
+
+    def close(self):
+        for c in self.conns:
+            c.send("stop")
+        for p in self.procs:
+            p.join(timeout=30)
+
+
+def pairs(mesh, kind, o, d, n, ceiling=True) -> dict:
+    """``n`` adjacent (1-thread, 2-thread) traces of the same rays, order alternating; with
+    ``ceiling`` each is a triple with the two processes' trace (``ProcessPair``), order rotating."""
     acc = {t: core.build(mesh, kind, threads=t) for t in (1, 2)}
     timed(acc[1], o[:65536], d[:65536])  # first-call costs (Embree starts its threads)
     timed(acc[2], o[:65536], d[:65536])
-    one, two, cpu = [], [], []
-    for i in range(n):
-        for t in ((1, 2) if i % 2 == 0 else (2, 1)):
-            wall, c = timed(acc[t], o, d)
-            (one if t == 1 else two).append(wall)
-            if t == 2:
-                cpu.append(c / wall)
+    procs = ProcessPair(mesh, kind, o, d) if ceiling else None
+    one, two, cpu, duo, fast = [], [], [], [], []
+    try:
+        for i in range(n):
+            order = ((1, 2, "P"), (2, "P", 1), ("P", 1, 2))[i % 3] if ceiling else ((1, 2) if i % 2 == 0 else (2, 1))
+            for t in order:
+                if t == "P":
+                    wall, quick = procs.run()
+                    duo.append(wall)
+                    fast.append(quick)
+                    continue
+                wall, c = timed(acc[t], o, d)
+                (one if t == 1 else two).append(wall)
+                if t == 2:
+                    cpu.append(c / wall)
+    finally:
+        if procs is not None:
+            procs.close()
     ratios = [a / b for a, b in zip(one, two)]
-    return {"one": statistics.median(one), "two": statistics.median(two), "cpu": statistics.median(cpu),
-            "of_medians": statistics.median(one) / statistics.median(two), "median": statistics.median(ratios),
-            "lo": min(ratios), "hi": max(ratios)}
+    out = {"one": statistics.median(one), "two": statistics.median(two), "cpu": statistics.median(cpu),
+           "of_medians": statistics.median(one) / statistics.median(two), "median": statistics.median(ratios),
+           "lo": min(ratios), "hi": max(ratios)}
+    if ceiling:
+        ceil = [a / b for a, b in zip(one, duo)]
+        out.update({"procs": statistics.median(duo), "ceiling": statistics.median(ceil),
+                    "ceil_lo": min(ceil), "ceil_hi": max(ceil),
+                    "share": statistics.median([a / b for a, b in zip(ratios, ceil)]),
+                    "skew": statistics.median([a / b for a, b in zip(duo, fast)])})
+    return out
 
 
 def main(argv=None) -> int:
@@ -72,8 +144,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="icospheres,suzanne", help="engine scenes (bench_trace.ENGINE_SCENES)")
     ap.add_argument("--kinds", default="bvh,grid", help="structures, some of grid,bvh,embree")
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays per trace (the issue's 1M)")
-    ap.add_argument("--pairs", type=int, default=5, help="adjacent 1-thread/2-thread pairs per row")
+    ap.add_argument("--pairs", type=int, default=5, help="adjacent pairs (triples with the ceiling) per row")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-ceiling", dest="ceiling", action="store_false",
+                    help="pairs only, without the two processes' trace (the hardware's ceiling)")
     args = ap.parse_args(argv)
     scenes = [s for s in args.scenes.split(",") if s]
     kinds = [k for k in args.kinds.split(",") if k]
@@ -86,21 +160,27 @@ def main(argv=None) -> int:
         if why:
             print(f"{k}: skipped ({why})")
             kinds.remove(k)
-    print(f"# 1 -> 2 threads, {args.rays:,} rays a trace, {args.pairs} adjacent pairs a row; "
+    print(f"# 1 -> 2 threads, {args.rays:,} rays a trace, {args.pairs} adjacent "
+          f"{'triples (1 thread, 2 threads, 2 processes)' if args.ceiling else 'pairs'} a row; "
           f"load average {os.getloadavg()[0]:.2f} at the start\n")
+    ceil_hdr = (" 2 processes s | ceiling: 1T / 2 processes [min, max] | 2T / ceiling | slower / faster process |"
+                if args.ceiling else "")
     print("| scene | rays | structure | 1 thread s | 2 threads s | CPU / wall (2T) | ratio of medians "
-          "| median of pair ratios [min, max] | goal >= 1.7 |")
-    print("|---|---|---|--:|--:|--:|--:|--:|:-:|")
+          f"| median of pair ratios [min, max] | goal >= 1.7 |{ceil_hdr}")
+    print("|---|---|---|--:|--:|--:|--:|--:|:-:|" + ("--:|--:|--:|--:|" if args.ceiling else ""))
     t_start = time.perf_counter()
     for name in scenes:
         scene = bench_trace.engine_scene(name, argparse.Namespace(rays=args.rays, seed=args.seed))
         for ray_kind, (o, d) in scene["rays"].items():
             o, d = o[: args.rays], d[: args.rays]
             for kind in kinds:
-                r = pairs(scene["mesh"], kind, o, d, args.pairs)
+                r = pairs(scene["mesh"], kind, o, d, args.pairs, ceiling=args.ceiling)
                 ok = "yes" if r["median"] >= GOAL else "**no**"
+                ceil = (f" {r['procs']:.3f} | {r['ceiling']:.2f} [{r['ceil_lo']:.2f}, {r['ceil_hi']:.2f}] | "
+                        f"{r['share']:.2f} | {r['skew']:.2f} |" if args.ceiling else "")
                 print(f"| {name} | {ray_kind} | {kind} | {r['one']:.3f} | {r['two']:.3f} | {r['cpu']:.2f} | "
-                      f"{r['of_medians']:.2f} | {r['median']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}] | {ok} |", flush=True)
+                      f"{r['of_medians']:.2f} | {r['median']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}] | {ok} |{ceil}",
+                      flush=True)
     print(f"\n{time.perf_counter() - t_start:.0f} s; load average {os.getloadavg()[0]:.2f} at the end")
     return 0
 

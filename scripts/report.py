@@ -1081,8 +1081,9 @@ def main(argv=None):
                     help="calibrations in a row whose constants are compared (the first is the one used; default 2)")
     ap.add_argument("--cal-repeats", type=int, default=None,
                     help="interleaved repeats per calibration scene (default: core's, as the add-on calibrates)")
-    ap.add_argument("--repeats", type=int, default=3,
-                    help="interleaved builds and traces of every structure per scene for R_C, medians (default 3)")
+    ap.add_argument("--repeats", type=int, default=5,
+                    help="interleaved builds and traces of every structure per scene for R_C, medians (default 5; "
+                         "with 3, a scene's t_G - t_H moved by 20-40%% between runs)")
     ap.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, help=f"plan's K sample rays (default {DEFAULT_SAMPLES})")
     ap.add_argument("--scenes", default=str(SHARED_SCENES), help="folder of real .obj meshes (default ../shared/scenes)")
     ap.add_argument("--max-triangles", type=int, default=1_500_000, help="largest subdivided scene (default 1.5M)")
