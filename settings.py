@@ -36,6 +36,7 @@ from bpy.props import (
 )
 
 from .budget import ray_budget, render_samples
+from .core.decide.measurements import SCALE_NOTES
 from .core.plan import DEFAULT_SAMPLES
 
 #: what ``break_even_rays`` holds when the break-even is infinite (float32's largest value)
@@ -212,9 +213,9 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         name="Calibration",
         description="How many procedural scenes and rays the calibration measures",
         items=(
-            ("tiny", "Tiny", "A few seconds; rough constants (for tests)"),
-            ("quick", "Quick", "Under a minute; 8 scenes, so constants can differ between runs"),
-            ("default", "Full", "The default set: about 7 minutes on 2 cores (20 scenes, 1,048,576 rays each), the constants the add-on ships"),
+            ("tiny", "Tiny", SCALE_NOTES["tiny"]),
+            ("quick", "Quick", SCALE_NOTES["quick"]),
+            ("default", "Full", SCALE_NOTES["default"]),
         ),
         default="default",
     )

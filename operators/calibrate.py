@@ -20,6 +20,7 @@ from pathlib import Path
 import bpy
 
 from .. import core
+from ..core.decide.measurements import SCALE_NOTES
 from .jobs import BadInput, Job, JobOperator, Unwritable
 
 #: set to a path to override where the calibration is read and written (tests)
@@ -100,9 +101,9 @@ class HYBRID_RAYCAST_OT_calibrate(JobOperator, bpy.types.Operator):
         name="Scale",
         description="How many procedural scenes and rays to measure (default: the scene setting)",
         items=(("SCENE", "Scene Setting", "Use scene.hybrid_raycast.calibration_scale"),
-               ("tiny", "Tiny", "A few seconds; rough constants"),
-               ("quick", "Quick", "Under a minute"),
-               ("default", "Full", "About 7 minutes on 2 cores: 20 scenes, 1,048,576 rays each")),
+               ("tiny", "Tiny", SCALE_NOTES["tiny"]),
+               ("quick", "Quick", SCALE_NOTES["quick"]),
+               ("default", "Full", SCALE_NOTES["default"])),
         default="SCENE",
     )
 

@@ -65,6 +65,7 @@ from pathlib import Path
 
 import bpy
 
+from ..core.decide.measurements import SCALE_NOTES
 from ..settings import RAYS_MAX
 from . import calibrate as calibrate_mod
 from .analyze import analysis_job, apply_analysis, results_json
@@ -132,7 +133,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ao-samples", type=_positive(int), help="trace --workload ao: rays per vertex")
     p.add_argument("--calibration", help="the calibration file to read and write")
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="default",
-                   help="calibrate: how much to measure (default: the full set the shipped calibration uses, about 5 minutes)")
+                   help=f"calibrate: how much to measure (default: {SCALE_NOTES['default']})")
     p.add_argument("--sensor", help="scan: the object to scan from (its hybrid_raycast_sensor settings)")
     p.add_argument("--format", choices=("ply", "las", "npz"), help="scan: file format (default: the sensor's)")
     p.add_argument("--space", choices=("world", "sensor"), help="scan: coordinates of the points (default: the sensor's)")

@@ -345,3 +345,17 @@ def test_unregister_removes_the_handlers_and_register_restores_them(addon):
     finally:
         addon.register()
     assert len(ours()) == 3
+
+
+def test_the_calibration_scales_have_one_description_in_the_operator_the_settings_and_the_cli(fresh, addon):
+    """The Calibrate operator's scales, the scene setting's and the CLI's --scale help all read
+    core's SCALE_NOTES, whose full-set text names its minutes and repeats."""
+    notes = addon.core.decide.measurements.SCALE_NOTES
+    op = bpy.ops.hybrid_raycast.calibrate.get_rna_type().properties["scale"].enum_items
+    setting = props().bl_rna.properties["calibration_scale"].enum_items
+    for k in ("tiny", "quick", "default"):
+        assert op[k].description == setting[k].description == notes[k]
+    full = notes["default"]
+    assert f"{addon.core.decide.measurements.FULL_CALIBRATION_MINUTES} minutes" in full
+    assert f"{addon.core.decide.measurements.CALIBRATION_REPEATS} interleaved repeats" in full
+    assert full in " ".join(addon.operators.cli.parser().format_help().split())
