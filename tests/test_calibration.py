@@ -459,3 +459,32 @@ def test_constants_apart_states_terms_builds_and_count_models_at_their_anchors()
     assert all(apart[k] == pytest.approx(0.0, abs=1e-9) for k in rays)
     raw = constants_apart(a, b, stated=False)
     assert {"bvh build 1", "bvh build n", "grid per ray at ref", "grid per ray x cells"} <= set(raw)
+
+
+def test_calibration_repeats_are_passes_over_all_scenes_and_records_keep_each_scenes_medians(monkeypatch):
+    """Every scene is measured once per pass (pass-major: all scenes, then all again), each with
+    its own mesh and rays (no late binding to the last scene's), the structures' order rotating
+    from pass to pass, and each record keeps the medians of its own passes."""
+    calls = []
+
+    def fake_measure(mesh, kind, origins, directions, *, threads=None, config=None):
+        if len(origins) != 40:  # warm_up's untimed 64 rays
+            return M.Measurement(1.0, 1.0, len(origins), 1)
+        calls.append((mesh.triangle_count, kind, len(origins)))
+        t = float(len(calls))  # every run a different time: the median is the middle pass's
+        return M.Measurement(t, 2 * t, len(origins), 1)
+
+    monkeypatch.setattr(M, "measure", fake_measure)
+    scenes = [("a", S.sphere(80)), ("b", lambda: S.soup(60, seed=1)), ("c", S.soup(30, seed=2))]
+    cal = calibrate(scenes, kinds=("brute", "bvh"), rays_per_scene=40, grid=False, model="paper", repeats=3, quiet=None)
+    sizes = [r.triangles for r in cal.scenes]
+    assert [(n, k) for n, k, _ in calls] == [
+        (sizes[0], "brute"), (sizes[0], "bvh"), (sizes[1], "brute"), (sizes[1], "bvh"), (sizes[2], "brute"), (sizes[2], "bvh"),
+        (sizes[0], "bvh"), (sizes[0], "brute"), (sizes[1], "bvh"), (sizes[1], "brute"), (sizes[2], "bvh"), (sizes[2], "brute"),
+        (sizes[0], "brute"), (sizes[0], "bvh"), (sizes[1], "brute"), (sizes[1], "bvh"), (sizes[2], "brute"), (sizes[2], "bvh"),
+    ]
+    assert len(set(sizes)) == 3
+    # scene a's brute runs were calls 1, 8 and 13: median 8; its bvh runs 2, 7, 14: median 7
+    assert (cal.scenes[0].kinds["brute"].build_time, cal.scenes[0].kinds["brute"].trace_time) == (8.0, 16.0)
+    assert cal.scenes[0].kinds["bvh"].build_time == 7.0
+    assert cal.scenes[2].kinds["brute"].build_time == 12.0  # calls 5, 12, 17

@@ -40,11 +40,16 @@ SAMPLE_LADDER = (1024, 2048, 4096, 8192, 16384, 32768, 65536)
 #: the least number of rays the grid's large-workload time per ray is measured on when
 #: samples are timed (whatever the scale's rays per scene): the default scale's batch
 GRID_LARGE_RAYS = LOCKSTEP_CHUNK
-#: builds and traces of every structure per calibration scene, interleaved; the record
-#: keeps the medians (on this 2-core VM one trace moves by 20-40% between runs).  With 3,
-#: two calibrations in a row stated the grid's time per ray at 40 cells 16-19% apart and
-#: the BVH's build at 1M triangles 12% apart (the report's repeatability row, issue 14)
+#: passes of a calibration over all its scenes, each pass building and tracing every
+#: structure of every scene once (interleaved); a record keeps its scene's medians (on this
+#: 2-core VM one trace moves by 20-40% between runs).  With 3 repeats back to back, two
+#: calibrations in a row stated the grid's time per ray at 40 cells 16-19% apart and the
+#: BVH's build at 1M triangles 12% apart; with 5, the grid 4% and the BVH's time per ray
+#: at 1,024 triangles 15% (the report's repeatability row, issue 14)
 CALIBRATION_REPEATS = 5
+#: the part of a calibration's progress bar for generating the scenes and timing the grid's
+#: samples, before the passes of builds and traces (about that share of its time)
+SETUP_SHARE = 0.1
 #: what each calibration scale measures and costs, for the add-on's settings, its Calibrate
 #: operator and the CLI (one text for all three); the full set's minutes are measured on
 #: this project's 2-core reference machine (``scripts/ship_calibration.py`` prints its duration)
@@ -193,9 +198,9 @@ def _process_seconds() -> float:
 
 
 def interleaved(jobs: dict, repeats: int, *, quiet: float | None = None, retries: int = QUIET_RETRIES,
-                shares: list | None = None) -> dict[str, list]:
+                shares: list | None = None, first_round: int = 0) -> dict[str, list]:
     """Run every job ``repeats`` times, interleaved (round r runs the jobs in an order
-    rotated by r), and return each job's results in run order.
+    rotated by ``first_round`` + r), and return each job's results in run order.
 
     On a shared machine the time of one run drifts by 20-40% from second to second;
     interleaving spreads that drift over every job alike, so the medians of the runs
@@ -207,7 +212,7 @@ def interleaved(jobs: dict, repeats: int, *, quiet: float | None = None, retries
     where it could not be read)."""
     names = list(jobs)
     out = {k: [] for k in names}
-    for r in range(max(1, int(repeats))):
+    for r in range(first_round, first_round + max(1, int(repeats))):
         order = [names[(i + r) % len(names)] for i in range(len(names))]
         best, takes = None, 0
         for takes in range(1, 2 + (max(0, int(retries)) if quiet is not None else 0)):
@@ -399,6 +404,8 @@ def calibrate(
     samples of each size in ``sample_ladder``, which give ``Calibration.grid_sample_ratio``
     (the grid's constants are not fitted: a plan measures the grid on its own scene).
     configs: optional {kind: config dict} passed to ``build``.
+    repeats: passes over all the scenes (``CALIBRATION_REPEATS``), each building and tracing
+    every structure of every scene once, so a scene's medians span the whole run.
     quiet: a round of a scene's measurements during which other processes took more than
     this share of the machine's CPU is taken again (``interleaved``; None: never); the
     calibration's notes say how many were, and the largest share in the rounds kept.
@@ -424,39 +431,62 @@ def calibrate(
     weights = np.array([_size_hint(f) for _, f in scenes])
     done = np.concatenate([[0.0], np.cumsum(weights)]) / weights.sum()
 
-    def report(i, j, msg):
-        if progress is not None:
-            progress(float(done[i] + (done[i + 1] - done[i]) * j / len(measured)), msg)
-
     warm_up(measured, threads=threads, configs=configs)
+    passes = max(1, int(repeats))
 
-    records, shares = [], []
+    def report(frac, msg):
+        if progress is not None:
+            progress(float(frac), msg)
+
+    # first every scene once: generated, its grid samples and work counts measured; then the
+    # repeats as passes over all scenes, so each scene's medians come from the whole run and
+    # not from one minute of it: the machine's speed drifts over minutes, and two calibrations
+    # in a row measured the small scenes minutes apart in different states (the BVH's time
+    # per ray at 1,024 triangles 15% apart with repeats back to back).  The meshes stay; each
+    # job makes its rays again from their seed (24 MB a scene that would otherwise stay too)
+    records, plans, shares = [], [], []
     for i, (name, factory) in enumerate(scenes):
-        report(i, 0, f"scene {i + 1}/{len(scenes)}: generating {name}")
+        report(SETUP_SHARE * done[i], f"scene {i + 1}/{len(scenes)}: generating {name}")
         mesh = factory if isinstance(factory, TriangleMesh) else factory()
         prepare_mesh(mesh)
-        origins, directions = uniform_rays(mesh, m_rays, seed=seed + i)
         rec = SceneRecord(name, mesh.triangle_count, m_rays)
         jobs = {}
-        for j, kind in enumerate(measured):
-            report(i, j, f"scene {i + 1}/{len(scenes)}: {name} ({mesh.triangle_count:,} triangles), {kind}")
+        for kind in measured:
             cfg = (configs or {}).get(kind)
+            rays = (m_rays, seed + i)
             if kind == "grid":
+                report(SETUP_SHARE * done[i], f"scene {i + 1}/{len(scenes)}: {name} ({mesh.triangle_count:,} triangles), "
+                                              f"grid samples")
                 gseed = seed + 7919 * (i + 1)
                 rec.grid_samples = _grid_samples(mesh, sample_ladder, threads, cfg, gseed)
                 rec.work = sample_work(mesh, work_samples, threads=threads, config=cfg, seed=gseed + 1).to_dict()
-                go, gd = origins, directions
-                if sample_ladder and len(origins) < GRID_LARGE_RAYS:
+                if sample_ladder and m_rays < GRID_LARGE_RAYS:
                     # the ratio needs a large workload's time per ray: the 'tiny' and 'quick'
                     # scales' few rays per scene would themselves be a small batch
-                    go, gd = uniform_rays(mesh, GRID_LARGE_RAYS, seed=gseed)
-                jobs[kind] = (lambda go=go, gd=gd, cfg=cfg: measure(mesh, "grid", go, gd, threads=threads, config=cfg))
-            else:
-                jobs[kind] = (lambda kind=kind, cfg=cfg: measure(mesh, kind, origins, directions, threads=threads, config=cfg))
-        runs = interleaved(jobs, repeats, quiet=quiet, shares=shares)
-        rec.kinds = {k: median_measurement(v) for k, v in runs.items()}
+                    rays = (GRID_LARGE_RAYS, gseed)
+            jobs[kind] = (lambda mesh=mesh, kind=kind, cfg=cfg, rays=rays:
+                          measure(mesh, kind, *uniform_rays(mesh, rays[0], seed=rays[1]), threads=threads, config=cfg))
         records.append(rec)
-        del mesh
+        plans.append(jobs)
+        del mesh  # the jobs hold it until the passes end
+    runs = [{k: [] for k in jobs} for jobs in plans]
+
+    def announced(job, frac, msg):
+        def run():  # progress before every structure, so a cancel waits for one trace at most
+            report(frac, msg)
+            return job()
+        return run
+
+    for r in range(passes):
+        for i, (rec, jobs) in enumerate(zip(records, plans)):
+            frac = SETUP_SHARE + (1.0 - SETUP_SHARE) * (r + done[i]) / passes
+            head = f"pass {r + 1}/{passes}, scene {i + 1}/{len(scenes)}: {rec.name} ({rec.triangles:,} triangles)"
+            told = {k: announced(job, frac, f"{head}, {k}") for k, job in jobs.items()}
+            for k, v in interleaved(told, 1, quiet=quiet, shares=shares, first_round=r).items():
+                runs[i][k] += v
+    plans.clear()  # the scenes' meshes go with their jobs
+    for rec, got in zip(records, runs):
+        rec.kinds = {k: median_measurement(v) for k, v in got.items()}
     notes += quiet_notes(shares, quiet)
     fits = fit(records, fitted, model=model, spread=spread)
     counts = fit_counts(records, ("grid",) + tuple(fitted), spread)
