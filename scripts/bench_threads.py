@@ -15,7 +15,7 @@ rays), each structure built once per thread count.  'CPU / wall' is the 2-thread
 process CPU time over its wall time (about 1.9 when both threads run the whole time).
 Run it alone (the bench lock), as every timing here.
 
-With ``--ceiling`` (the default) each repeat is a triple: beside the 1-thread and the
+By default (``--no-ceiling`` for pairs only) each repeat is a triple: beside the 1-thread and the
 2-thread trace, two separate processes (spawned, nothing shared, so no GIL between them)
 each trace half of the same rays (every other ray) on one thread at the same moment.  The
 1-thread time over that pair's time is what the machine's two cores give this structure's

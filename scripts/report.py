@@ -1080,7 +1080,7 @@ def main(argv=None):
     ap.add_argument("--calibrations", type=int, default=2,
                     help="calibrations in a row whose constants are compared (the first is the one used; default 2)")
     ap.add_argument("--cal-repeats", type=int, default=None,
-                    help="interleaved repeats per calibration scene (default: core's, as the add-on calibrates)")
+                    help="passes of the calibration over its scenes (default: core's, as the add-on calibrates)")
     ap.add_argument("--repeats", type=int, default=5,
                     help="interleaved builds and traces of every structure per scene for R_C, medians (default 5; "
                          "with 3, a scene's t_G - t_H moved by 20-40%% between runs)")

@@ -357,5 +357,5 @@ def test_the_calibration_scales_have_one_description_in_the_operator_the_setting
         assert op[k].description == setting[k].description == notes[k]
     full = notes["default"]
     assert f"{addon.core.decide.measurements.FULL_CALIBRATION_MINUTES} minutes" in full
-    assert f"{addon.core.decide.measurements.CALIBRATION_REPEATS} interleaved repeats" in full
+    assert f"{addon.core.decide.measurements.CALIBRATION_REPEATS} passes" in full
     assert full in " ".join(addon.operators.cli.parser().format_help().split())

@@ -44,8 +44,9 @@ GRID_LARGE_RAYS = LOCKSTEP_CHUNK
 #: structure of every scene once (interleaved); a record keeps its scene's medians (on this
 #: 2-core VM one trace moves by 20-40% between runs).  With 3 repeats back to back, two
 #: calibrations in a row stated the grid's time per ray at 40 cells 16-19% apart and the
-#: BVH's build at 1M triangles 12% apart; with 5, the grid 4% and the BVH's time per ray
-#: at 1,024 triangles 15% (the report's repeatability row, issue 14)
+#: BVH's build at 1M triangles 12% apart; with 5 back to back, the BVH's time per ray at
+#: 1,024 triangles 15%; with 5 passes, every constant within 6.7% (median 1.7%; the
+#: report's repeatability row, issue 14)
 CALIBRATION_REPEATS = 5
 #: the part of a calibration's progress bar for generating the scenes and timing the grid's
 #: samples, before the passes of builds and traces (about that share of its time)
@@ -58,7 +59,7 @@ SCALE_NOTES = {
     "tiny": "A few seconds; rough constants (for tests)",
     "quick": "Under a minute; 8 scenes, so constants can differ between runs",
     "default": (f"About {FULL_CALIBRATION_MINUTES} minutes on 2 cores: 20 scenes, {RAYS_PER_SCENE['default']:,} rays "
-                f"each, {CALIBRATION_REPEATS} interleaved repeats; the constants the add-on ships"),
+                f"each, {CALIBRATION_REPEATS} passes over them; the constants the add-on ships"),
 }
 #: sample rays on which calibration counts the grid's per-ray work, as a plan does on its K
 #: (``work.DEFAULT_SAMPLES``, 8,192): the counts are means over the rays, the same for any K
