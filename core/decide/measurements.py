@@ -443,49 +443,49 @@ def calibrate(
     # repeats as passes over all scenes, so each scene's medians come from the whole run and
     # not from one minute of it: the machine's speed drifts over minutes, and two calibrations
     # in a row measured the small scenes minutes apart in different states (the BVH's time
-    # per ray at 1,024 triangles 15% apart with repeats back to back).  The meshes stay; each
-    # job makes its rays again from their seed (24 MB a scene that would otherwise stay too)
+    # per ray at 1,024 triangles 15% apart with repeats back to back).  The meshes stay; a
+    # scene's rays are made again from their seed in each pass (24 MB a scene otherwise kept)
     records, plans, shares = [], [], []
     for i, (name, factory) in enumerate(scenes):
         report(SETUP_SHARE * done[i], f"scene {i + 1}/{len(scenes)}: generating {name}")
         mesh = factory if isinstance(factory, TriangleMesh) else factory()
         prepare_mesh(mesh)
         rec = SceneRecord(name, mesh.triangle_count, m_rays)
-        jobs = {}
+        rays = {}  # kind: (ray count, seed) of the rays it is timed on
         for kind in measured:
-            cfg = (configs or {}).get(kind)
-            rays = (m_rays, seed + i)
+            rays[kind] = (m_rays, seed + i)
             if kind == "grid":
                 report(SETUP_SHARE * done[i], f"scene {i + 1}/{len(scenes)}: {name} ({mesh.triangle_count:,} triangles), "
                                               f"grid samples")
+                cfg = (configs or {}).get(kind)
                 gseed = seed + 7919 * (i + 1)
                 rec.grid_samples = _grid_samples(mesh, sample_ladder, threads, cfg, gseed)
                 rec.work = sample_work(mesh, work_samples, threads=threads, config=cfg, seed=gseed + 1).to_dict()
                 if sample_ladder and m_rays < GRID_LARGE_RAYS:
                     # the ratio needs a large workload's time per ray: the 'tiny' and 'quick'
                     # scales' few rays per scene would themselves be a small batch
-                    rays = (GRID_LARGE_RAYS, gseed)
-            jobs[kind] = (lambda mesh=mesh, kind=kind, cfg=cfg, rays=rays:
-                          measure(mesh, kind, *uniform_rays(mesh, rays[0], seed=rays[1]), threads=threads, config=cfg))
+                    rays[kind] = (GRID_LARGE_RAYS, gseed)
         records.append(rec)
-        plans.append(jobs)
-        del mesh  # the jobs hold it until the passes end
-    runs = [{k: [] for k in jobs} for jobs in plans]
+        plans.append((mesh, rays))
+        del mesh  # plans holds it until the passes end
+    runs = [{k: [] for k in measured} for _ in records]
 
-    def announced(job, frac, msg):
+    def job(mesh, kind, o, d, frac, msg):
         def run():  # progress before every structure, so a cancel waits for one trace at most
             report(frac, msg)
-            return job()
+            return measure(mesh, kind, o, d, threads=threads, config=(configs or {}).get(kind))
         return run
 
     for r in range(passes):
-        for i, (rec, jobs) in enumerate(zip(records, plans)):
+        for i, (rec, (mesh, rays)) in enumerate(zip(records, plans)):
             frac = SETUP_SHARE + (1.0 - SETUP_SHARE) * (r + done[i]) / passes
             head = f"pass {r + 1}/{passes}, scene {i + 1}/{len(scenes)}: {rec.name} ({rec.triangles:,} triangles)"
-            told = {k: announced(job, frac, f"{head}, {k}") for k, job in jobs.items()}
-            for k, v in interleaved(told, 1, quiet=quiet, shares=shares, first_round=r).items():
+            made = {key: uniform_rays(mesh, key[0], seed=key[1]) for key in set(rays.values())}
+            jobs = {k: job(mesh, k, *made[rays[k]], frac, f"{head}, {k}") for k in measured}
+            for k, v in interleaved(jobs, 1, quiet=quiet, shares=shares, first_round=r).items():
                 runs[i][k] += v
-    plans.clear()  # the scenes' meshes go with their jobs
+            del made, jobs
+    plans.clear()  # the scenes' meshes
     for rec, got in zip(records, runs):
         rec.kinds = {k: median_measurement(v) for k, v in got.items()}
     notes += quiet_notes(shares, quiet)
