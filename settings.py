@@ -136,6 +136,12 @@ def _time(name, description, **kw):
                          min=0.0, precision=6, **kw)
 
 
+#: the calibration scales as enum items (the scene setting's, and the Calibrate operator's
+#: after its 'Scene Setting'), described by core (``SCALE_NOTES``)
+CALIBRATION_SCALES = (("tiny", "Tiny", SCALE_NOTES["tiny"]), ("quick", "Quick", SCALE_NOTES["quick"]),
+                      ("default", "Full", SCALE_NOTES["default"]))
+
+
 class HybridRaycastSettings(bpy.types.PropertyGroup):
     # == settings ======================================================================
     ray_budget: EnumProperty(
@@ -212,11 +218,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     calibration_scale: EnumProperty(
         name="Calibration",
         description="How many procedural scenes and rays the calibration measures",
-        items=(
-            ("tiny", "Tiny", SCALE_NOTES["tiny"]),
-            ("quick", "Quick", SCALE_NOTES["quick"]),
-            ("default", "Full", SCALE_NOTES["default"]),
-        ),
+        items=CALIBRATION_SCALES,
         default="default",
     )
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import bpy
 
 from .. import core
-from ..core.decide.measurements import SCALE_NOTES
+from ..settings import CALIBRATION_SCALES
 from .jobs import BadInput, Job, JobOperator, Unwritable
 
 #: set to a path to override where the calibration is read and written (tests)
@@ -89,6 +89,10 @@ def apply_calibration(scene, result) -> list[tuple[str, str]]:
     return msgs
 
 
+#: the operator's scales: the scene setting's, or one of the calibration scales
+SCALE_ITEMS = (("SCENE", "Scene Setting", "Use scene.hybrid_raycast.calibration_scale"),) + CALIBRATION_SCALES
+
+
 class HYBRID_RAYCAST_OT_calibrate(JobOperator, bpy.types.Operator):
     """Measure this machine's build and per-ray constants on procedural scenes and save them in the extension's user folder"""
 
@@ -100,10 +104,7 @@ class HYBRID_RAYCAST_OT_calibrate(JobOperator, bpy.types.Operator):
     scale: bpy.props.EnumProperty(
         name="Scale",
         description="How many procedural scenes and rays to measure (default: the scene setting)",
-        items=(("SCENE", "Scene Setting", "Use scene.hybrid_raycast.calibration_scale"),
-               ("tiny", "Tiny", SCALE_NOTES["tiny"]),
-               ("quick", "Quick", SCALE_NOTES["quick"]),
-               ("default", "Full", SCALE_NOTES["default"])),
+        items=SCALE_ITEMS,
         default="SCENE",
     )
 
