@@ -15,7 +15,7 @@ from .objio import load_obj
 from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, uniform_rays
 from . import decide
-from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even
+from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even, measure_break_evens
 from .plan import Plan, plan, ski_rental, trace_online
 from .multihit import all_hits
 from .scenes import calibration_set
@@ -35,6 +35,7 @@ __all__ = [
     "calibration_set",
     "load_or_default",
     "measure_break_even",
+    "measure_break_evens",
     "plan",
     "ski_rental",
     "trace_online",

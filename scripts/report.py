@@ -59,7 +59,7 @@ from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import cost as calib  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
     CALIBRATION_FORMAT, MODELS, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate,
-    load, measure_break_even, time_trace, warm_up,
+    load, measure_break_evens, time_trace, warm_up,
 )
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
@@ -148,15 +148,27 @@ def timed_build(mesh, kind, repeats, **config):
     return acc, float(statistics.median(times))
 
 
-def measure_scene(name, group, mesh, cal, args, kinds):
-    """True costs on ``args.rays`` rays, then the plan's estimate: one SceneResult (+ the rays).
+def measure_truths(meshes, args, kinds):
+    """The true costs of every scene on ``args.rays`` uniform rays (seed ``args.seed``): one
+    BreakEven per mesh, measured in ``args.repeats`` passes over all the scenes, as the
+    calibration measures its own (``measure_break_evens``), so that a slow minute of the
+    machine falls on every scene alike and not on the few measured in it."""
+    scenes = [(mesh, args.rays) for mesh in meshes]
+    return measure_break_evens(scenes, ("grid",) + tuple(kinds), repeats=args.repeats, quiet=quiet_share(args),
+                               seed=args.seed, progress=lambda f, msg: log(f"  truths: {msg}"))
+
+
+def measure_scene(name, group, mesh, cal, args, kinds, be=None):
+    """The plan's estimate against the true costs ``be`` (``measure_truths``; measured here
+    when None): one SceneResult (+ the rays, the grid and the structures).
 
     The plan runs as the add-on runs it: once with K uniform samples (its decision and
     estimates are the SceneResult's), and once given the workload's rays, for what the
     estimate costs when its samples are K of them (``reuse_estimate_time``)."""
     n = mesh.triangle_count
-    o, d = uniform_rays(mesh, args.rays, seed=args.seed)
-    be = measure_break_even(mesh, (o, d), ("grid",) + tuple(kinds), repeats=args.repeats, quiet=quiet_share(args))
+    if be is None:
+        be = measure_truths([mesh], args, kinds)[0]
+    o, d = uniform_rays(mesh, args.rays, seed=args.seed)  # the rays the truths traced
     grid, structs = be.structures["grid"], {k: be.structures[k] for k in kinds}
     g_build, g_time = be.measurements["grid"].build_time, be.measurements["grid"].trace_time
     measured = {k: rep.Cost(be.measurements[k].build_time, be.measurements[k].per_ray) for k in kinds}
@@ -438,7 +450,8 @@ def write_markdown(path: Path, R: dict):
         how = (f"the '{cal['model']}' model and the time of K = {fnum(meta['samples'])} sample rays / K times the "
                f"calibration's ratio {fnum(ratio.get('median'), 2)} [{fnum(ratio.get('low'), 2)}, {fnum(ratio.get('high'), 2)}]")
     w(f"As the add-on stands: `core.plan` with {how}. R_C: medians of {meta.get('repeats', 1)} interleaved builds "
-      f"and traces of every structure on {fnum(meta['rays'])} uniform rays (`core.decide.measure_break_even`). "
+      f"and traces of every structure on {fnum(meta['rays'])} uniform rays, in {meta.get('repeats', 1)} passes over all the "
+      f"scenes as the calibration measures its own (`core.decide.measure_break_evens`). "
       f"The hybrid's total is given two ways: "
       f"**(i)** K uniform samples apart from the workload, their cost counted (the sidebar's Analyze); "
       f"**(ii)** K samples drawn from the workload and their answers kept (`api.cast`, the Trace operator): the "
@@ -1082,8 +1095,9 @@ def main(argv=None):
     ap.add_argument("--cal-repeats", type=int, default=None,
                     help="passes of the calibration over its scenes (default: core's, as the add-on calibrates)")
     ap.add_argument("--repeats", type=int, default=5,
-                    help="interleaved builds and traces of every structure per scene for R_C, medians (default 5; "
-                         "with 3, a scene's t_G - t_H moved by 20-40%% between runs)")
+                    help="passes over all the scenes, each building and tracing every structure of every scene once "
+                         "(interleaved), for R_C from the medians (default 5; with 3 back to back, a scene's t_G - t_H "
+                         "moved by 20-40%% between runs)")
     ap.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, help=f"plan's K sample rays (default {DEFAULT_SAMPLES})")
     ap.add_argument("--scenes", default=str(SHARED_SCENES), help="folder of real .obj meshes (default ../shared/scenes)")
     ap.add_argument("--max-triangles", type=int, default=1_500_000, help="largest subdivided scene (default 1.5M)")
@@ -1146,10 +1160,15 @@ def main(argv=None):
         keep = set(args.only.split(","))
         scene_list = [x for x in scene_list if x[0] in keep]
     results, sweep_rows, batch_rows = [], [], []
+    meshes = []
     for i, (name, group, make) in enumerate(scene_list):
-        mesh = make()
-        log(f"scene {i + 1}/{len(scene_list)}: {name} ({mesh.triangle_count:,} triangles, {group})")
-        s, rays, grid, structs = measure_scene(name, group, mesh, cal, args, kinds)
+        meshes.append(make())
+        log(f"scene {i + 1}/{len(scene_list)}: {name} ({meshes[-1].triangle_count:,} triangles, {group})")
+    truths = measure_truths(meshes, args, kinds)
+    for i, (name, group, _) in enumerate(scene_list):
+        mesh, be = meshes[i], truths[i]
+        meshes[i] = truths[i] = None  # each scene's structures go once it is done
+        s, rays, grid, structs = measure_scene(name, group, mesh, cal, args, kinds, be)
         notes += [f"{name}: {x}" for x in s.extra["measurement_notes"]]
         rc, re_ = rep.true_break_even(s), rep.estimated_break_even(s)
         log(f"  grid {s.grid.build * 1e3:.1f} ms {s.grid.per_ray * 1e6:.2f} us/ray (estimate {s.grid_estimate_per_ray * 1e6:.2f} "

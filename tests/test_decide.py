@@ -98,6 +98,58 @@ def test_interleaved_rotates_the_order_each_round_and_keeps_each_jobs_results_in
     assert out == {"a": [1, 6, 8], "b": [2, 4, 9], "c": [3, 5, 7]}
 
 
+def test_in_passes_runs_every_scene_once_a_pass_with_the_order_rotated_by_the_pass():
+    """Two scenes, three passes: pass r runs scene 0's jobs, then scene 1's, each rotated by r,
+    and each scene's jobs are made again for every pass."""
+    from hybrid_raycast.core.decide.measurements import in_passes
+
+    log, made = [], []
+
+    def scene(name):
+        def make(r):
+            made.append((name, r))
+            return {k: (lambda k=k: log.append(f"{name}{k}") or len(log)) for k in ("a", "b")}
+        return make
+
+    shares = [[], []]
+    out = in_passes([scene("x"), scene("y")], 3, shares=shares)
+    assert log == ["xa", "xb", "ya", "yb", "xb", "xa", "yb", "ya", "xa", "xb", "ya", "yb"]
+    assert made == [("x", 0), ("y", 0), ("x", 1), ("y", 1), ("x", 2), ("y", 2)]
+    assert out == [{"a": [1, 6, 9], "b": [2, 5, 10]}, {"a": [3, 8, 11], "b": [4, 7, 12]}]
+    assert [len(x) for x in shares] == [3, 3]  # one round per scene per pass
+
+
+def test_measure_break_evens_measures_each_scene_in_passes_with_its_own_medians(monkeypatch):
+    """Two scenes in three passes: every pass measures both scenes (scene 0 before scene 1),
+    each BreakEven takes the medians of its own scene's passes and keeps the last pass's
+    structures only."""
+    from hybrid_raycast.core import scenes as S
+    from hybrid_raycast.core.decide import measurements as M
+
+    order = []
+    real = M._measure
+
+    def spy(mesh, kind, o, d, threads, config):
+        order.append((mesh.triangle_count, kind))
+        return real(mesh, kind, o, d, threads, config)
+
+    monkeypatch.setattr(M, "_measure", spy)
+    a, b = S.torus(800), S.sphere(1500)
+    got = M.measure_break_evens([(a, 500), (b, 700)], ("grid", "bvh"), repeats=3)
+    na, nb = a.triangle_count, b.triangle_count
+    order = [x for x in order if x[0] in (na, nb)]  # not warm_up's tiny scene
+    assert [n for n, _ in order] == [na, na, nb, nb] * 3
+    assert [k for _, k in order[:4]] == ["grid", "bvh", "grid", "bvh"]
+    assert [k for _, k in order[4:6]] == ["bvh", "grid"]
+    for be, n, rays in zip(got, (na, nb), (500, 700)):
+        assert (be.triangles, be.rays, be.repeats) == (n, rays, 3)
+        for k in ("grid", "bvh"):
+            assert len(be.runs[k]) == 3
+            assert be.measurements[k].build_time == float(np.median([m.build_time for m in be.runs[k]]))
+        assert set(be.structures) == {"grid", "bvh"}
+        assert all(s.mesh.triangle_count == n for s in be.structures.values())
+
+
 class _FakeShares:
     """Stands in for OthersShare: each ``with`` block reports the next share of a list."""
 

@@ -90,12 +90,17 @@ def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None,
     back reuse the memory the previous one freed, and a median of up to nine of them put a
     20k-triangle scene's numpy BVH build at 34-38 ms where single builds take 48-68 ms
     (issue 14; the held-out break-even error rose from 12-14% to 23% with it)."""
+    return _measure(mesh, kind, origins, directions, threads, config)[0]
+
+
+def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurement, Accel]:
+    """``measure``, and the structure it built."""
     cfg = dict(config or {})
     if threads is not None:
         cfg.setdefault("threads", threads)
     accel = build(mesh, kind, **cfg)
     _, dt = time_trace(accel, origins, directions)
-    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads))
+    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads)), accel
 
 
 def unavailable_reason(kind: str) -> str | None:
@@ -230,6 +235,28 @@ def interleaved(jobs: dict, repeats: int, *, quiet: float | None = None, retries
     return out
 
 
+def in_passes(scene_jobs, passes: int, *, quiet: float | None = None, shares: list | None = None) -> list[dict]:
+    """Run every scene's jobs ``passes`` times as passes over all the scenes: pass r runs
+    each scene's jobs once, interleaved (``interleaved``, its order rotated by r), before
+    the next pass starts.  On this 2-core VM the machine's speed drifts over minutes (a
+    scene measured in one slow minute had every build and trace of it slow); in passes, each
+    scene's medians span the whole run, so the calibration and the evaluation's truths, both
+    measured this way, see the same drift.
+
+    scene_jobs: one callable per scene, ``make(r)`` -> that scene's {name: job} for pass r
+    (made per pass, so what a pass needs, such as its rays, is freed after it).
+    quiet: ``interleaved``'s, for every round.  shares: one list per scene, each receiving
+    its rounds' (share, takes) (``interleaved``).
+    Returns one {name: [result of each pass]} per scene."""
+    runs = [{} for _ in scene_jobs]
+    for r in range(max(1, int(passes))):
+        for i, make in enumerate(scene_jobs):
+            got = interleaved(make(r), 1, quiet=quiet, shares=None if shares is None else shares[i], first_round=r)
+            for k, v in got.items():
+                runs[i].setdefault(k, []).extend(v)
+    return runs
+
+
 @dataclass
 class BreakEven:
     """Measured break-even of each hierarchical structure against the grid on one scene.
@@ -268,46 +295,68 @@ def measure_break_even(mesh: TriangleMesh, rays, kinds=("grid", "bvh"), *, threa
     """Really build every structure in ``kinds`` (which must include 'grid') and trace
     ``rays`` through each: the true break-even R_C of the paper's evaluation.
 
-    rays: (origins, directions), or a count of the paper's uniform random rays.
+    rays: (origins, directions), or a count of the paper's uniform random rays (from ``seed``).
     configs: optional {kind: config dict} passed to ``build``.
     repeats: builds and traces of every structure, interleaved (``interleaved``); the
     break-even is taken from the medians.
     quiet: a round during which other processes took more than this share of the CPU is
     taken again (``interleaved``; ``QUIET_SHARE`` is calibration's); ``notes`` say so.
-    """
+    ``measure_break_evens`` measures several scenes in passes."""
+    return measure_break_evens([(mesh, rays)], kinds, threads=threads, configs=configs, seed=seed, repeats=repeats,
+                               quiet=quiet)[0]
+
+
+def measure_break_evens(scenes, kinds=("grid", "bvh"), *, threads=None, configs=None, seed=0, repeats: int = 1,
+                        quiet: float | None = None, progress=None) -> list[BreakEven]:
+    """``measure_break_even`` of every (mesh, rays) in ``scenes``, in ``repeats`` passes over
+    all of them (``in_passes``), as calibration measures its scenes: the truths and the
+    constants they are compared with then see the machine's drift alike.  A count of rays
+    is made again from ``seed`` in each pass (1M rays are 48 MB a scene).  Each
+    BreakEven's ``structures`` are those of the last pass (earlier passes' are freed after
+    their trace, as ``measure`` frees its own).  progress: ``callback(fraction, message)``
+    before each scene's round."""
     from ..rays import uniform_rays
 
     if "grid" not in kinds:
         raise ValueError("measure_break_even needs 'grid' among the kinds (the break-even is against the grid)")
-    if isinstance(rays, (int, np.integer)):
-        origins, directions = uniform_rays(mesh, int(rays), seed=seed)
-    else:
-        origins, directions = rays
-    prepare_mesh(mesh)
+    scenes = list(scenes)
+    passes = max(1, int(repeats))
+    for mesh, _ in scenes:
+        prepare_mesh(mesh)
     warm_up(kinds, threads=threads, configs=configs)
-    last = {}
+    kept = [{} for _ in scenes]
+    shares = [[] for _ in scenes]
 
-    def job(kind):
-        def run():
-            cfg = dict((configs or {}).get(kind) or {})
-            if threads is not None:
-                cfg.setdefault("threads", threads)
-            last.pop(kind, None)  # free the previous structure before building the next
-            acc = build(mesh, kind, **cfg)
-            _, dt = time_trace(acc, origins, directions)
-            last[kind] = acc
-            return Measurement(float(acc.build_time), float(dt), int(len(origins)), int(acc.threads))
-        return run
+    def scene_jobs(i):
+        mesh, rays = scenes[i]
 
-    shares = []
-    runs = interleaved({k: job(k) for k in kinds}, repeats, quiet=quiet, shares=shares)
-    meas = {k: median_measurement(v) for k, v in runs.items()}
-    g = meas["grid"].per_ray
-    rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
-    rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
-              for k in kinds if k != "grid"}
-    return BreakEven(mesh.triangle_count, len(origins), meas, rc, max(1, int(repeats)), rc_rep, runs, last,
-                     notes=quiet_notes(shares, quiet))
+        def make(r):
+            if progress is not None:
+                progress((r + i / len(scenes)) / passes, f"pass {r + 1}/{passes}, scene {i + 1}/{len(scenes)}")
+            o, d = uniform_rays(mesh, int(rays), seed=seed) if isinstance(rays, (int, np.integer)) else rays
+
+            def job(kind):
+                def run():
+                    m, acc = _measure(mesh, kind, o, d, threads, (configs or {}).get(kind))
+                    if r == passes - 1:
+                        kept[i][kind] = acc
+                    return m
+                return run
+
+            return {k: job(k) for k in kinds}
+        return make
+
+    out = []
+    for i, runs in enumerate(in_passes([scene_jobs(i) for i in range(len(scenes))], passes, quiet=quiet, shares=shares)):
+        meas = {k: median_measurement(v) for k, v in runs.items()}
+        g = meas["grid"].per_ray
+        rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
+        rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
+                  for k in kinds if k != "grid"}
+        n_rays = next(iter(runs.values()))[0].rays
+        out.append(BreakEven(scenes[i][0].triangle_count, n_rays, meas, rc, passes, rc_rep, runs, kept[i],
+                             notes=quiet_notes(shares[i], quiet)))
+    return out
 
 
 def _grid_samples(mesh, ladder, threads, config, seed) -> dict[int, float]:
@@ -445,7 +494,7 @@ def calibrate(
     # in a row measured the small scenes minutes apart in different states (the BVH's time
     # per ray at 1,024 triangles 15% apart with repeats back to back).  The meshes stay; a
     # scene's rays are made again from their seed in each pass (24 MB a scene otherwise kept)
-    records, plans, shares = [], [], []
+    records, plans = [], []
     for i, (name, factory) in enumerate(scenes):
         report(SETUP_SHARE * done[i], f"scene {i + 1}/{len(scenes)}: generating {name}")
         mesh = factory if isinstance(factory, TriangleMesh) else factory()
@@ -468,7 +517,6 @@ def calibrate(
         records.append(rec)
         plans.append((mesh, rays))
         del mesh  # plans holds it until the passes end
-    runs = [{k: [] for k in measured} for _ in records]
 
     def job(mesh, kind, o, d, frac, msg):
         def run():  # progress before every structure, so a cancel waits for one trace at most
@@ -476,15 +524,19 @@ def calibrate(
             return measure(mesh, kind, o, d, threads=threads, config=(configs or {}).get(kind))
         return run
 
-    for r in range(passes):
-        for i, (rec, (mesh, rays)) in enumerate(zip(records, plans)):
+    def scene_jobs(i):
+        rec, (mesh, rays) = records[i], plans[i]
+
+        def make(r):
             frac = SETUP_SHARE + (1.0 - SETUP_SHARE) * (r + done[i]) / passes
             head = f"pass {r + 1}/{passes}, scene {i + 1}/{len(scenes)}: {rec.name} ({rec.triangles:,} triangles)"
             made = {key: uniform_rays(mesh, key[0], seed=key[1]) for key in set(rays.values())}
-            jobs = {k: job(mesh, k, *made[rays[k]], frac, f"{head}, {k}") for k in measured}
-            for k, v in interleaved(jobs, 1, quiet=quiet, shares=shares, first_round=r).items():
-                runs[i][k] += v
-            del made, jobs
+            return {k: job(mesh, k, *made[rays[k]], frac, f"{head}, {k}") for k in measured}
+        return make
+
+    per_scene = [[] for _ in records]
+    runs = in_passes([scene_jobs(i) for i in range(len(records))], passes, quiet=quiet, shares=per_scene)
+    shares = [x for got in per_scene for x in got]
     plans.clear()  # the scenes' meshes
     for rec, got in zip(records, runs):
         rec.kinds = {k: median_measurement(v) for k, v in got.items()}
