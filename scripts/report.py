@@ -59,8 +59,9 @@ from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import cost as calib  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
     CALIBRATION_FORMAT, MODELS, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate,
-    load, measure_break_evens, time_trace, warm_up,
+    break_even_jobs, load, measure_break_evens, time_trace, warm_up,
 )
+from hybrid_raycast.core.decide.measurements import CALIBRATION_REPEATS  # noqa: E402
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
@@ -148,14 +149,18 @@ def timed_build(mesh, kind, repeats, **config):
     return acc, float(statistics.median(times))
 
 
+def truth_jobs(meshes, args, kinds, passes):
+    """``measure_truths``' jobs (``break_even_jobs``), to run in a calibration's ``passes``."""
+    return break_even_jobs([(mesh, args.rays) for mesh in meshes], ("grid",) + tuple(kinds), seed=args.seed,
+                           passes=passes, progress=lambda f, msg: log(f"  truths: {msg}"))
+
+
 def measure_truths(meshes, args, kinds):
-    """The true costs of every scene on ``args.rays`` uniform rays (seed ``args.seed``): one
-    BreakEven per mesh, measured in ``args.repeats`` passes over all the scenes, as the
-    calibration measures its own (``measure_break_evens``), so that a slow minute of the
-    machine falls on every scene alike and not on the few measured in it."""
-    scenes = [(mesh, args.rays) for mesh in meshes]
-    return measure_break_evens(scenes, ("grid",) + tuple(kinds), repeats=args.repeats, quiet=quiet_share(args),
-                               seed=args.seed, progress=lambda f, msg: log(f"  truths: {msg}"))
+    """One BreakEven per mesh, measured in ``args.repeats`` passes over all the scenes
+    (``measure_break_evens``), as the calibration measures its own, so that a slow minute of
+    the machine falls on every scene alike and not on the few measured in it."""
+    return measure_break_evens([(mesh, args.rays) for mesh in meshes], ("grid",) + tuple(kinds), repeats=args.repeats,
+                               quiet=quiet_share(args), seed=args.seed, progress=lambda f, msg: log(f"  truths: {msg}"))
 
 
 def measure_scene(name, group, mesh, cal, args, kinds, be=None):
@@ -806,9 +811,11 @@ def plots(out: Path, R: dict, scene_objs, sweep_rows):
 
 # -- the run -----------------------------------------------------------------------------------------
 
-def get_calibration(args):
+def get_calibration(args, beside=None):
     """The calibration the report evaluates, fitted with the package's default model (read
-    at run time: the add-on as it stands); a reused file fitted otherwise is refitted."""
+    at run time: the add-on as it stands); a reused file fitted otherwise is refitted.
+    beside: when it measures one, a function giving ``calibrate``'s ``beside`` (the truths'
+    jobs, measured in the same passes)."""
     path = Path(args.calibration)
     cal, how = None, ""
     if args.reuse_calibration and path.exists():
@@ -829,9 +836,11 @@ def get_calibration(args):
                 log(f"  {f:4.0%} {msg}")
 
         cal = calibrate(kinds=("bvh", "embree"), scale=args.cal_scale, rays_per_scene=args.cal_rays, progress=progress,
-                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_options(args))
+                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder),
+                        beside=beside() if beside is not None else None, **cal_options(args))
         cal.save(path)
-        how = f"measured for this report in {cal.duration_s:.0f} s"
+        how = f"measured for this report in {cal.duration_s:.0f} s" + (
+            ", in the same passes as the evaluated scenes' truths" if beside is not None else "")
     if cal.model != calib.DEFAULT_MODEL or cal.version.get("format") != CALIBRATION_FORMAT:
         # an older file's constants are stated as it stated them: refit (the records are kept)
         log(f"calibration fitted with '{cal.model}' (format {cal.version.get('format')}): refitting with the default "
@@ -1115,6 +1124,8 @@ def main(argv=None):
     ap.add_argument("--sweep-density", default=",".join(map(str, SWEEP_DENSITY)))
     ap.add_argument("--sweep-repeats", type=int, default=2)
     ap.add_argument("--no-embree", action="store_true", help="leave Embree out even when embreex is installed")
+    ap.add_argument("--no-joint", dest="joint", action="store_false",
+                    help="a calibration measured by the report runs before the truths, not in the same passes")
     ap.add_argument("--quiet-share", type=float, default=QUIET_SHARE,
                     help=f"take a round of measurements again when other processes took more than this share of the "
                          f"CPU (default {QUIET_SHARE:g}; 0: never; --quick: 0)")
@@ -1141,12 +1152,6 @@ def main(argv=None):
     log(f"report: load average {load_before}, {os.cpu_count()} cores, out {out}")
 
     kinds, notes = available_kinds(("bvh",) if args.no_embree else ("bvh", "embree"))
-    cal, cal_how = get_calibration(args)
-    warm_up(("grid",) + kinds)
-    log(cal.describe())
-    ks = sorted(set(args.sweep_k) | {args.samples})
-    ratio_info = grid_sample_ratios(cal, ks)
-
     if args.quick:
         scene_list = quick_scenes()
         sweep_names = [scene_list[0][0], scene_list[-1][0]] if args.sweep_scenes else []
@@ -1164,7 +1169,25 @@ def main(argv=None):
     for i, (name, group, make) in enumerate(scene_list):
         meshes.append(make())
         log(f"scene {i + 1}/{len(scene_list)}: {name} ({meshes[-1].triangle_count:,} triangles, {group})")
-    truths = measure_truths(meshes, args, kinds)
+    # a calibration measured here runs the truths in its own passes: the machine's speed
+    # drifts by 10-20% over half an hour, and not alike for every structure, so constants
+    # and truths measured one after the other differ by that drift as well as by the model
+    joint = {}
+
+    def beside():
+        passes = args.cal_repeats if args.cal_repeats is not None else CALIBRATION_REPEATS
+        if passes != args.repeats:
+            log(f"the truths take the calibration's passes ({passes}), not --repeats {args.repeats}")
+        jobs, finish = truth_jobs(meshes, args, kinds, passes)
+        return jobs, lambda runs, shares: joint.setdefault("truths", finish(runs, shares, quiet_share(args)))
+
+    cal, cal_how = get_calibration(args, beside=beside if args.joint else None)
+    warm_up(("grid",) + kinds)
+    log(cal.describe())
+    ks = sorted(set(args.sweep_k) | {args.samples})
+    ratio_info = grid_sample_ratios(cal, ks)
+    truths = joint.get("truths") or measure_truths(meshes, args, kinds)
+    passes = truths[0].repeats if truths else args.repeats
     for i, (name, group, _) in enumerate(scene_list):
         mesh, be = meshes[i], truths[i]
         meshes[i] = truths[i] = None  # each scene's structures go once it is done
@@ -1213,7 +1236,7 @@ def main(argv=None):
     meta = {
         "command": "python scripts/report.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"), "quick": args.quick, "rays": args.rays,
-        "samples": args.samples, "sweep_rays": args.sweep_rays, "repeats": args.repeats, "sweep_repeats": args.sweep_repeats,
+        "samples": args.samples, "sweep_rays": args.sweep_rays, "repeats": passes, "sweep_repeats": args.sweep_repeats,
         "cpus": os.cpu_count(), "processor": cal.version.get("machine", {}).get("processor", platform.processor()),
         "python": platform.python_version(), "numpy": np.__version__, "load_before": load_before,
         "threads": (results[0].extra["threads"] if results else {}),

@@ -488,3 +488,35 @@ def test_calibration_repeats_are_passes_over_all_scenes_and_records_keep_each_sc
     assert (cal.scenes[0].kinds["brute"].build_time, cal.scenes[0].kinds["brute"].trace_time) == (8.0, 16.0)
     assert cal.scenes[0].kinds["bvh"].build_time == 7.0
     assert cal.scenes[2].kinds["brute"].build_time == 12.0  # calls 5, 12, 17
+
+
+def test_calibrate_runs_the_jobs_beside_it_in_its_own_passes_and_hands_back_their_results(monkeypatch):
+    """``beside``: an evaluation's jobs run in each pass after the calibration's scenes (so
+    constants and truths come from the same minutes), made again every pass; ``done`` gets
+    each beside scene's results per pass and its own shares, and the calibration's records
+    keep only their own measurements."""
+    log = []
+
+    def fake_measure(mesh, kind, origins, directions, *, threads=None, config=None):
+        if len(origins) != 40:  # warm_up's untimed rays
+            return M.Measurement(1.0, 1.0, len(origins), 1)
+        log.append(("cal", mesh.triangle_count, kind))
+        return M.Measurement(float(len(log)), 1.0, len(origins), 1)
+
+    monkeypatch.setattr(M, "measure", fake_measure)
+
+    def other(name):
+        def make(r):
+            return {"x": lambda: log.append((name, r)) or len(log)}
+        return make
+
+    got = {}
+    scenes = [("a", S.sphere(80)), ("b", S.soup(60, seed=1))]
+    cal = calibrate(scenes, kinds=("bvh",), rays_per_scene=40, grid=False, model="paper", repeats=2, quiet=None,
+                    beside=([other("p"), other("q")], lambda runs, shares: got.update(runs=runs, shares=shares)))
+    sizes = [r.triangles for r in cal.scenes]
+    assert log == [("cal", sizes[0], "bvh"), ("cal", sizes[1], "bvh"), ("p", 0), ("q", 0),
+                   ("cal", sizes[0], "bvh"), ("cal", sizes[1], "bvh"), ("p", 1), ("q", 1)]
+    assert got["runs"] == [{"x": [3, 7]}, {"x": [4, 8]}]
+    assert [len(s) for s in got["shares"]] == [2, 2]
+    assert [r.kinds["bvh"].build_time for r in cal.scenes] == [3.0, 4.0]  # medians of (1, 5) and (2, 6)

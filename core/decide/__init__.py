@@ -15,6 +15,6 @@ from .calfile import (CALIBRATION_FORMAT, DEFAULT_PATH, Calibration, Calibration
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Estimate, KindFit, Measurement, SceneRecord, break_even, fit,
                    log2n, nlog2n)
 from .measurements import (GRID_LARGE_RAYS, QUIET_SHARE, RAYS_PER_SCENE, SAMPLE_LADDER, BreakEven, OthersShare,
-                           available_kinds, calibrate, in_passes, measure, measure_break_even, measure_break_evens,
-                           prepare_mesh, time_trace, warm_up)
+                           available_kinds, break_even_jobs, calibrate, in_passes, measure, measure_break_even,
+                           measure_break_evens, prepare_mesh, time_trace, warm_up)
 from .rule import REUSES_SAMPLES, choose

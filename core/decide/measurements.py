@@ -314,18 +314,29 @@ def measure_break_evens(scenes, kinds=("grid", "bvh"), *, threads=None, configs=
     is made again from ``seed`` in each pass (1M rays are 48 MB a scene).  Each
     BreakEven's ``structures`` are those of the last pass (earlier passes' are freed after
     their trace, as ``measure`` frees its own).  progress: ``callback(fraction, message)``
-    before each scene's round."""
+    before each scene's round.  ``break_even_jobs`` gives the same jobs to run in other
+    passes (``calibrate(beside=...)``)."""
+    jobs, finish = break_even_jobs(scenes, kinds, threads=threads, configs=configs, seed=seed, passes=repeats,
+                                   progress=progress)
+    shares = [[] for _ in jobs]
+    return finish(in_passes(jobs, repeats, quiet=quiet, shares=shares), shares, quiet)
+
+
+def break_even_jobs(scenes, kinds=("grid", "bvh"), *, threads=None, configs=None, seed=0, passes: int = 1,
+                    progress=None):
+    """The jobs of ``measure_break_evens``: (scene_jobs, finish), ``scene_jobs`` one
+    ``in_passes`` callable per scene and ``finish(runs, shares, quiet)`` the BreakEvens from
+    ``in_passes``' results (``shares`` its per-scene lists)."""
     from ..rays import uniform_rays
 
     if "grid" not in kinds:
         raise ValueError("measure_break_even needs 'grid' among the kinds (the break-even is against the grid)")
     scenes = list(scenes)
-    passes = max(1, int(repeats))
+    passes = max(1, int(passes))
     for mesh, _ in scenes:
         prepare_mesh(mesh)
     warm_up(kinds, threads=threads, configs=configs)
     kept = [{} for _ in scenes]
-    shares = [[] for _ in scenes]
 
     def scene_jobs(i):
         mesh, rays = scenes[i]
@@ -346,17 +357,20 @@ def measure_break_evens(scenes, kinds=("grid", "bvh"), *, threads=None, configs=
             return {k: job(k) for k in kinds}
         return make
 
-    out = []
-    for i, runs in enumerate(in_passes([scene_jobs(i) for i in range(len(scenes))], passes, quiet=quiet, shares=shares)):
-        meas = {k: median_measurement(v) for k, v in runs.items()}
-        g = meas["grid"].per_ray
-        rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
-        rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
-                  for k in kinds if k != "grid"}
-        n_rays = next(iter(runs.values()))[0].rays
-        out.append(BreakEven(scenes[i][0].triangle_count, n_rays, meas, rc, passes, rc_rep, runs, kept[i],
-                             notes=quiet_notes(shares[i], quiet)))
-    return out
+    def finish(all_runs, shares, quiet) -> list[BreakEven]:
+        out = []
+        for i, runs in enumerate(all_runs):
+            meas = {k: median_measurement(v) for k, v in runs.items()}
+            g = meas["grid"].per_ray
+            rc = {k: break_even(m.build_time, g, m.per_ray) for k, m in meas.items() if k != "grid"}
+            rc_rep = {k: [break_even(h.build_time, gg.per_ray, h.per_ray) for h, gg in zip(runs[k], runs["grid"])]
+                      for k in kinds if k != "grid"}
+            n_rays = next(iter(runs.values()))[0].rays
+            out.append(BreakEven(scenes[i][0].triangle_count, n_rays, meas, rc, len(runs["grid"]), rc_rep, runs,
+                                 kept[i], notes=quiet_notes(shares[i], quiet)))
+        return out
+
+    return [scene_jobs(i) for i in range(len(scenes))], finish
 
 
 def _grid_samples(mesh, ladder, threads, config, seed) -> dict[int, float]:
@@ -443,6 +457,7 @@ def calibrate(
     repeats: int = CALIBRATION_REPEATS,
     work_samples: int = WORK_SAMPLES,
     quiet: float | None = QUIET_SHARE,
+    beside=None,
 ) -> Calibration:
     """Measure every structure in ``kinds`` on each scene and fit the model.
 
@@ -459,6 +474,10 @@ def calibrate(
     quiet: a round of a scene's measurements during which other processes took more than
     this share of the machine's CPU is taken again (``interleaved``; None: never); the
     calibration's notes say how many were, and the largest share in the rounds kept.
+    beside: (scene_jobs, done): other scenes' ``in_passes`` jobs, run in the same passes
+    after the calibration's own scenes (an evaluation's truths: the constants and the
+    truths then come from the same minutes of the machine); ``done(runs, shares)`` gets
+    their results when the passes end.
     """
     from .. import scenes as scene_lib
     from ..rays import uniform_rays
@@ -534,8 +553,12 @@ def calibrate(
             return {k: job(mesh, k, *made[rays[k]], frac, f"{head}, {k}") for k in measured}
         return make
 
-    per_scene = [[] for _ in records]
-    runs = in_passes([scene_jobs(i) for i in range(len(records))], passes, quiet=quiet, shares=per_scene)
+    others = list(beside[0]) if beside is not None else []
+    per_scene = [[] for _ in range(len(records) + len(others))]
+    runs = in_passes([scene_jobs(i) for i in range(len(records))] + others, passes, quiet=quiet, shares=per_scene)
+    if beside is not None:
+        beside[1](runs[len(records):], per_scene[len(records):])
+    runs, per_scene = runs[: len(records)], per_scene[: len(records)]
     shares = [x for got in per_scene for x in got]
     plans.clear()  # the scenes' meshes
     for rec, got in zip(records, runs):
