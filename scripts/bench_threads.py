@@ -2,6 +2,7 @@
 
     .venv/bin/python scripts/bench_threads.py                         # both engine scenes, 1M rays, 5 pairs
     .venv/bin/python scripts/bench_threads.py --scenes suzanne --kinds grid --pairs 9
+    .venv/bin/python scripts/bench_threads.py --hardware --scenes ""          # the machine's own scaling only
 
 On this 2-core VM the speed of the whole machine drifts by 20-30% within minutes, so a
 ratio of two medians taken minutes apart (the engine table's '2 threads / 1 thread' rows)
@@ -21,6 +22,12 @@ each trace half of the same rays (every other ray) on one thread at the same mom
 1-thread time over that pair's time is what the machine's two cores give this structure's
 work with no Python in the way, measured in the same minute as the threads: the hardware's
 ceiling for the 2-thread ratio.  '2T / ceiling' is the share of it the threads reach.
+
+``--hardware`` first prints the machine's own 1 -> 2 process scaling on work with no
+structure in it: a pure-Python loop (no memory traffic) and a streaming numpy kernel
+(sqrt, multiply, add) over arrays of growing size, so a ceiling below 2 can be told apart
+from Python: on this VM (2 MiB L2 per core, 32 MiB shared L3) the loop scales about 2x and
+the kernel falls from about 2x at 1 MB to about 1.35x at 16 MB, the size of a pool's state.
 """
 
 from __future__ import annotations
@@ -102,6 +109,53 @@ class ProcessPair:
             p.join(timeout=30)
 
 
+def _spin(kind: str, size: int, go, out):
+    """A hardware process: after ``go``, run ``kind`` work ('python', or a numpy kernel over
+    arrays of ``size`` float32) for a fixed amount of it and put its own seconds on ``out``."""
+    if kind == "python":
+        go.wait()
+        t0 = time.perf_counter()
+        s = 0
+        for i in range(4_000_000):
+            s += i * i
+    else:
+        a = np.random.default_rng(0).random(size, dtype=np.float32)
+        b = np.empty_like(a)
+        go.wait()
+        t0 = time.perf_counter()
+        for _ in range(max(1, int(4e8) // size)):
+            np.sqrt(a, out=b)
+            b *= a
+            b += 1.0
+    out.put(time.perf_counter() - t0)
+
+
+def hardware_rows(reps: int) -> list[tuple[str, float, float, float]]:
+    """(work, median, min, max) of 1-process time / 2-process time over ``reps`` adjacent
+    pairs, each process doing the same work (so 2.0 is perfect scaling)."""
+    ctx = multiprocessing.get_context("spawn")
+
+    def once(kind, size, k):
+        go, out = ctx.Event(), ctx.Queue()
+        procs = [ctx.Process(target=_spin, args=(kind, size, go, out), daemon=True) for _ in range(k)]
+        for p in procs:
+            p.start()
+        time.sleep(0.5 + 0.5 * k)  # let them import numpy and fill their arrays before 'go'
+        go.set()
+        took = max(out.get() for _ in procs)
+        for p in procs:
+            p.join()
+        return took
+
+    rows = []
+    for kind, size, label in (("python", 0, "pure-Python loop"),
+                              *(("numpy", n, f"numpy sqrt*a+1 over {n * 4 / 2**20:.1f} MiB")
+                                for n in (1 << 18, 1 << 20, 1 << 22))):
+        r = sorted(once(kind, size, 1) / once(kind, size, 2) * 2 for _ in range(reps))
+        rows.append((label, statistics.median(r), r[0], r[-1]))
+    return rows
+
+
 def pairs(mesh, kind, o, d, n, ceiling=True) -> dict:
     """``n`` adjacent (1-thread, 2-thread) traces of the same rays, order alternating; with
     ``ceiling`` each is a triple with the two processes' trace (``ProcessPair``), order rotating."""
@@ -148,6 +202,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-ceiling", dest="ceiling", action="store_false",
                     help="pairs only, without the two processes' trace (the hardware's ceiling)")
+    ap.add_argument("--hardware", action="store_true",
+                    help="first the machine's own 1 -> 2 process scaling on a Python loop and a numpy kernel")
     args = ap.parse_args(argv)
     scenes = [s for s in args.scenes.split(",") if s]
     kinds = [k for k in args.kinds.split(",") if k]
@@ -163,6 +219,13 @@ def main(argv=None) -> int:
     print(f"# 1 -> 2 threads, {args.rays:,} rays a trace, {args.pairs} adjacent "
           f"{'triples (1 thread, 2 threads, 2 processes)' if args.ceiling else 'pairs'} a row; "
           f"load average {os.getloadavg()[0]:.2f} at the start\n")
+    if args.hardware:
+        print("| work, same in each process | 2 x 1 process s / 2 processes s, median [min, max] |\n|---|--:|")
+        for label, med, lo, hi in hardware_rows(args.pairs):
+            print(f"| {label} | {med:.2f} [{lo:.2f}, {hi:.2f}] |", flush=True)
+        print()
+    if not (scenes and kinds):
+        return 0
     ceil_hdr = (" 2 processes s | ceiling: 1T / 2 processes [min, max] | 2T / ceiling | slower / faster process |"
                 if args.ceiling else "")
     print("| scene | rays | structure | 1 thread s | 2 threads s | CPU / wall (2T) | ratio of medians "
