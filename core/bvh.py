@@ -713,9 +713,9 @@ class BVH(Accel):
             below = stack[:top].take(pop, axis=1).view(np.uint32).reshape(top, len(pop), 2)
             ok = below[:, :, 1].view(F32) <= widen(tlim.take(pop))[None, :]
             ok &= np.arange(top)[:, None] < level[None, :]
-            # the highest passing depth: the first True from the top
-            up = ok[::-1].argmax(axis=0)
-            found = ok[::-1].take(up * len(pop) + np.arange(len(pop)))
+            down = ok[::-1]  # depths from the top: the first True is the highest passing depth
+            up = down.argmax(axis=0)
+            found = down.take(up * len(pop) + np.arange(len(pop)))
             depth = top - 1 - up
             keep = pop[found]
             d = depth[found]
