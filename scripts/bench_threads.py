@@ -27,7 +27,7 @@ ceiling for the 2-thread ratio.  '2T / ceiling' is the share of it the threads r
 structure in it: a pure-Python loop (no memory traffic) and a streaming numpy kernel
 (sqrt, multiply, add) over arrays of growing size, so a ceiling below 2 can be told apart
 from Python: on this VM (2 MiB L2 per core, 32 MiB shared L3) the loop scales about 2x and
-the kernel falls from about 2x at 1 MB to about 1.35x at 16 MB, the size of a pool's state.
+the kernel falls from about 2x at 1-4 MiB to 1.3-1.6x at 16 MiB, the size of a grid pool's state.
 """
 
 from __future__ import annotations
