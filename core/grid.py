@@ -170,8 +170,8 @@ class UniformGrid(Accel):
         the triangle's bounding box enlarged by a bound on the kernel's float32 slack
         (see ``_box_filter``); most pairs of a cell miss, and the test costs a fraction
         of the kernel.  The kernel alone still decides every hit.
-    ``skip`` (default True): empty-space skipping over the same cells.  Each cell stores
-        the radius r of a cube of empty cells around it (``empty_radius``: 0, 1, 3, 7 or
+    ``skip`` (default True): empty-space skipping over the same cells.  Each cell's code
+        holds (negated) the radius r of a cube of empty cells around it (``empty_radius``: 0, 1, 3, 7 or
         15 cells); a ray in an empty cell with r >= 1
         jumps through that cube in one DDA step, to the last cell of the cube on its
         path.  Cells skipped hold no reference, so the hits are those of the plain DDA.
@@ -572,8 +572,9 @@ class UniformGrid(Accel):
         return R
 
     def _box_filter(self, R, r, ref):
-        """Indices of the pairs (column r of R, triangle tri) whose ray line meets the
-        triangle's box enlarged by eps; R as made by ``_filter_rays``.
+        """Indices of the pairs (column r of R, reference ref: a position in ``cell_tris``)
+        whose ray line meets the referenced triangle's box enlarged by eps; R as made by
+        ``_filter_rays``.
 
         The kernel can report a hit only where the exact ray passes within about
         2u|v - o| of the triangle (u = 2**-24: its shear is float32; measured, not just

@@ -396,6 +396,24 @@ def test_empty_space_skip_changes_no_hit_on_a_sparse_scene():
     assert_same_hits(plain.trace(o, d), want, "skip=False")
 
 
+def test_a_cell_with_more_references_than_int16_holds():
+    """40,000 triangles in one cell of a 4 x 4 x 4 grid: the per-cell code (reference count,
+    or minus the skip radius) must widen past int16, and every hit still match."""
+    rng = np.random.default_rng(21)
+    n = 40_000
+    cluster = 0.125 + rng.uniform(-0.02, 0.02, (n, 1, 3)) + rng.normal(0, 0.004, (n, 3, 3))
+    corners = np.array([[0, 0, 0], [1, 1, 1]], float)[:, None, :] + rng.normal(0, 0.01, (2, 3, 3))
+    v = np.concatenate([cluster, corners]).reshape(-1, 3)
+    mesh = core.TriangleMesh(v, np.arange(len(v)).reshape(-1, 3))
+    o = rng.uniform(-0.2, 1.2, (600, 3))
+    d = 0.125 + rng.normal(0, 0.02, (600, 3)) - o  # most rays through the cluster
+    d[::3] = rng.normal(size=(200, 3))
+    grid, want = check_against_brute(mesh, o, d, "int32 cell codes", max_cells=64)
+    assert grid.stats()["max_refs_per_cell"] >= 2**15, "set-up: the cluster is not in one cell"
+    assert grid._cell_code.dtype == np.int32
+    assert want.hit.mean() > 0.5, "set-up: too few rays hit the cluster"
+
+
 def test_a_mesh_of_only_degenerate_triangles_is_all_misses():
     v = np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2]], float)
     mesh = core.TriangleMesh(v, [[0, 1, 2], [0, 0, 1]])
