@@ -171,10 +171,10 @@ class UniformGrid(Accel):
         (see ``_box_filter``); most pairs of a cell miss, and the test costs a fraction
         of the kernel.  The kernel alone still decides every hit.
     ``skip`` (default True): empty-space skipping over the same cells.  Each cell's code
-        holds (negated) the radius r of a cube of empty cells around it (``empty_radius``: 0, 1, 3, 7 or
-        15 cells); a ray in an empty cell with r >= 1
-        jumps through that cube in one DDA step, to the last cell of the cube on its
-        path.  Cells skipped hold no reference, so the hits are those of the plain DDA.
+        holds (negated) the radius r of a cube of empty cells around it (``empty_radius``:
+        0, 1, 3, 7 or 15 cells); a ray in an empty cell with r >= 1 jumps through that
+        cube in one DDA step, to the last cell of the cube on its path.  Cells skipped
+        hold no reference, so the hits are those of the plain DDA.
     ``pool`` (default 2**17): live rays stepping in lockstep; the pool is refilled from
         the chunk (``chunk_size``, default 2**20 rays) as rays finish, so only a chunk's
         last steps run on few rays, whose numpy calls cost as much as full ones.
