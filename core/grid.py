@@ -319,7 +319,7 @@ class UniformGrid(Accel):
         counts = np.diff(full)
         self._cell_code = counts.astype(np.int16 if counts.max(initial=0) < 2**15 else np.int32)
         if self.skip:
-            occupied = (np.diff(cell_start) > 0).reshape(self.res[::-1])
+            occupied = (counts[pad : pad + self.ncells] > 0).reshape(self.res[::-1])
             self._cell_code[pad : pad + self.ncells] -= empty_radius(occupied).ravel()  # 0 where occupied
 
     def _sat_refs(self, tv, ids, i0, span, planes, cells, tris):
