@@ -82,11 +82,56 @@ def morton30(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return code
 
 
-def _segments(start, count):
-    """For ranges [start, start+count): segment id and global position of every element."""
+class _Scratch:
+    """Named work arrays one build reuses from level to level.
+
+    A level's temporaries are as long as the triangles it splits.  Allocated afresh at
+    every level, glibc handed them back to the kernel and took them again, so a
+    1M-triangle build first-touched ~0.5 GB: ~125k page faults, a quarter of its time, and
+    a cost that moves with the machine's state (issue 14).  ``get(name, n)`` is a view of
+    the first n items of the buffer called ``name``, made on first use at the ``capacity``
+    the build needs at most; no two live temporaries share a name."""
+
+    def __init__(self, capacity: int):
+        self.capacity = int(capacity)
+        self._buf = {}
+        self._arange = np.arange(self.capacity)
+
+    def get(self, name, n, dtype=np.intp):
+        a = self._buf.get(name)
+        if a is None or a.dtype != dtype or len(a) < n:
+            a = self._buf[name] = np.empty(max(n, self.capacity), dtype)
+        return a[:n]
+
+    def arange(self, n):
+        """0 .. n-1, read only (shared by every caller)."""
+        if n > len(self._arange):
+            self._arange = np.arange(n)
+        return self._arange[:n]
+
+
+def _gather(a, index, out, axis=None):
+    """``np.take`` into ``out``.  Mode "clip", because "raise" fills a fresh copy of out and
+    copies it back (numpy checks every index before it writes); the build's indices are
+    in range by construction, so clipping never changes one."""
+    return np.take(a, index, axis=axis, out=out, mode="clip")
+
+
+def _segments(start, count, scratch=None):
+    """For ranges [start, start+count): segment id and global position of every element,
+    and each range's first element.  With ``scratch`` and every count > 0 (each split's
+    case) the first two are its buffers "seg" and "pos"."""
     first = np.cumsum(count) - count
-    seg = np.repeat(np.arange(len(count)), count)
-    pos = np.arange(int(count.sum())) + np.repeat(start - first, count)
+    p = int(count.sum())
+    if scratch is None or not (count > 0).all():
+        return np.repeat(np.arange(len(count)), count), np.arange(p) + np.repeat(start - first, count), first
+    seg = scratch.get("seg", p)
+    seg.fill(0)
+    seg[first[1:]] = 1
+    np.cumsum(seg, out=seg)
+    pos = scratch.get("pos", p)
+    _gather(start - first, seg, pos)
+    pos += scratch.arange(p)
     return seg, pos, first
 
 
@@ -125,7 +170,7 @@ def _half_area(lo, hi):
     return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
 
 
-def _split_sah(order, soa, start, count, bins, weight=None, sample=SAH_SAMPLE):
+def _split_sah(order, soa, start, count, bins, weight=None, sample=SAH_SAMPLE, scratch=None):
     """Binned SAH on the widest centroid axis, every node of a level at once.
 
     soa: (9, N) float32 per item (stored in ``order``'s initial, Morton order): centroid
@@ -134,16 +179,29 @@ def _split_sah(order, soa, start, count, bins, weight=None, sample=SAH_SAMPLE):
     items is binned from ``sample`` of them taken evenly along its (Morton-ordered) range, a
     stratified sample of its space; all its items are then classified against the chosen
     plane.  Partitions ``order`` in place (stable within each node, so Morton order survives
-    inside the children) and returns the split positions.
+    inside the children) and returns the split positions.  The item-long temporaries live
+    in ``scratch`` (a ``_Scratch`` of at least len(order); a new one when None).
     """
+    ws = _Scratch(len(order)) if scratch is None else scratch
     k = len(start)
     # -- bin statistics from (a sample of) each node
     m = np.minimum(count, sample)
-    sseg, spos, sfirst = _segments(start, m)
-    stride = (count / m).take(sseg)
-    spos = start.take(sseg) + ((spos - start.take(sseg)) * stride).astype(np.intp)
-    stri = order.take(spos)
-    c = soa[0:3].take(stri, axis=1)
+    sampled = bool((m < count).any())
+    sseg, spos, sfirst = _segments(start, m, ws)
+    ps = len(spos)
+    if sampled:  # spread each node's m positions evenly over its range
+        st = ws.get("start", ps)
+        _gather(start, sseg, st)
+        f64 = ws.get("f64", ps, np.float64)
+        _gather(count / m, sseg, f64)
+        np.subtract(spos, st, out=spos)
+        np.multiply(spos, f64, out=f64)
+        np.copyto(spos, f64, casting="unsafe")  # truncation, as astype(np.intp)
+        spos += st
+    stri = ws.get("item", ps)
+    _gather(order, spos, stri)
+    c = ws.get("centroid", 3 * ps, F32).reshape(3, ps)
+    _gather(soa[0:3], stri, c, axis=1)
     cmin = np.minimum.reduceat(c, sfirst, axis=1)
     ext = np.maximum.reduceat(c, sfirst, axis=1) - cmin
     axis = np.argmax(ext, axis=0)
@@ -151,17 +209,26 @@ def _split_sah(order, soa, start, count, bins, weight=None, sample=SAH_SAMPLE):
     e = ext.ravel().take(flat_k).astype(np.float64)
     scale = (bins / np.where(e > 0, e, 1.0)).astype(F32)  # float64 quotient: a tiny extent must not overflow
     amin = cmin.ravel().take(flat_k)
-    ps = len(spos)
-    x = c.ravel().take(axis.take(sseg) * ps + np.arange(ps)) - amin.take(sseg)
-    b = np.clip((x * scale.take(sseg)).astype(np.intp), 0, bins - 1)
-    key = b * k + sseg  # bins-major: (bins, k) tables, scans run along contiguous rows
+    idx, x, f32 = ws.get("index", ps), ws.get("x", ps, F32), ws.get("f32", ps, F32)
+    _gather(axis, sseg, idx)  # each item's coordinate on its node's axis
+    idx *= ps
+    idx += ws.arange(ps)
+    _gather(c.ravel(), idx, x)
+    x -= _gather(amin, sseg, f32)
+    x *= _gather(scale, sseg, f32)
+    b = ws.get("bin", ps)
+    np.copyto(b, x, casting="unsafe")  # truncation, as astype(np.intp)
+    np.clip(b, 0, bins - 1, out=b)
+    key = ws.get("key", ps)
+    np.multiply(b, k, out=key)  # bins-major: (bins, k) tables, scans run along contiguous rows
+    key += sseg
     w = None if weight is None else weight.take(stri)
     cnt = np.bincount(key, weights=w, minlength=bins * k).reshape(bins, k)
     blo = np.full((3, bins * k), np.inf, F32)
     bhi = np.full((3, bins * k), -np.inf, F32)
     for ax in range(3):
-        np.minimum.at(blo[ax], key, soa[3 + ax].take(stri))
-        np.maximum.at(bhi[ax], key, soa[6 + ax].take(stri))
+        np.minimum.at(blo[ax], key, _gather(soa[3 + ax], stri, f32))
+        np.maximum.at(bhi[ax], key, _gather(soa[6 + ax], stri, f32))
     blo = blo.reshape(3, bins, k)
     bhi = bhi.reshape(3, bins, k)
     # split j (1 .. bins-1): left = bins [0, j), right = bins [j, bins); a sample's counts
@@ -175,29 +242,54 @@ def _split_sah(order, soa, start, count, bins, weight=None, sample=SAH_SAMPLE):
     j = np.argmin(cost, axis=0) + 1
     usable = np.isfinite(cost[j - 1, np.arange(k)])  # False when all centroids coincide: median
     # -- classify every item against its node's plane, partition stably
-    seg, pos, first = _segments(start, count)
-    p = len(pos)
-    tri = order.take(pos)
-    if (m == count).all():  # nothing was sampled: reuse the bins
-        left = b < j.take(seg)
+    left = ws.get("left", int(count.sum()), bool)
+    if not sampled:  # the sample was every item: reuse its segments and bins
+        seg, pos, first, tri = sseg, spos, sfirst, stri
+        np.less(b, _gather(j, seg, key), out=left)
     else:
-        xa = soa.ravel().take(axis.take(seg) * soa.shape[1] + tri) - amin.take(seg)
-        left = (xa * scale.take(seg)).astype(np.intp) < j.take(seg)  # same rounding as b above
-    local = np.arange(p) - first.take(seg)
-    left = np.where(usable.take(seg), left, local < (count // 2).take(seg))
-    excl = np.cumsum(left) - left
-    lrank = excl - excl.take(first).take(seg)
-    nleft = np.bincount(seg, weights=left, minlength=k).astype(np.intp)
+        seg, pos, first = _segments(start, count, ws)
+        p = len(pos)
+        tri = ws.get("item", p)
+        _gather(order, pos, tri)
+        idx, xa, f32, bi, jt = (ws.get(n, p, d) for n, d in
+                                (("index", np.intp), ("x", F32), ("f32", F32), ("bin", np.intp), ("key", np.intp)))
+        _gather(axis, seg, idx)
+        idx *= soa.shape[1]
+        idx += tri
+        _gather(soa.ravel(), idx, xa)
+        xa -= _gather(amin, seg, f32)
+        xa *= _gather(scale, seg, f32)  # same rounding as the bins above
+        np.copyto(bi, xa, casting="unsafe")
+        np.less(bi, _gather(j, seg, jt), out=left)
+    p = len(pos)
+    local = ws.get("local", p)
+    np.subtract(ws.arange(p), _gather(first, seg, local), out=local)
+    if not usable.all():
+        np.copyto(left, local < (count // 2).take(seg), where=~usable.take(seg))
+    last = first + count - 1
+    excl, lrank = ws.get("excl", p), ws.get("rank", p)
+
+    def ranks():
+        np.cumsum(left, out=excl)
+        np.subtract(excl, left, out=excl)
+        at_first = excl.take(first)
+        np.subtract(excl, _gather(at_first, seg, lrank), out=lrank)
+        return excl.take(last) + left.take(last) - at_first
+
+    nleft = ranks()
     # a sampled plane may leave one side empty: fall back to the median there
     lopsided = (nleft == 0) | (nleft == count)
     if lopsided.any():
-        fix = lopsided.take(seg)
-        left = np.where(fix, local < (count // 2).take(seg), left)
-        excl = np.cumsum(left) - left
-        lrank = excl - excl.take(first).take(seg)
-        nleft = np.bincount(seg, weights=left, minlength=k).astype(np.intp)
-    s = start.take(seg)
-    order.put(np.where(left, s + lrank, s + nleft.take(seg) + (local - lrank)), tri)
+        np.copyto(left, local < (count // 2).take(seg), where=lopsided.take(seg))
+        nleft = ranks()
+    # left items to s + rank, right ones to s + nleft + (local - rank)
+    dst = ws.get("index", p)
+    _gather(nleft, seg, dst)
+    dst += local
+    dst -= lrank
+    np.copyto(dst, lrank, where=left)
+    dst += _gather(start, seg, local)
+    order.put(dst, tri, mode="clip")  # "raise" would copy order first
     return start + nleft
 
 
@@ -262,6 +354,7 @@ def build_binary(tlo, thi, leaf_size=4, method="hlbvh", bins=16, cluster_bits=6,
         soa = np.ascontiguousarray(np.concatenate([cen, tlo, thi], axis=1).take(order, axis=0).T)
         perm = np.arange(n)
         pcodes = codes.take(order)
+        scratch = _Scratch(n)  # one set of work arrays for every level
 
         def split(s, c):
             mid = np.empty(len(s), np.int64)
@@ -270,7 +363,7 @@ def build_binary(tlo, thi, leaf_size=4, method="hlbvh", bins=16, cluster_bits=6,
             nb = np.where(c > 8 * SMALL_BINS, bins, np.minimum(bins, SMALL_BINS))
             for nbins in np.unique(nb[big]):
                 g = big & (nb == nbins)
-                mid[g] = _split_sah(perm, soa, s[g], c[g], int(nbins))
+                mid[g] = _split_sah(perm, soa, s[g], c[g], int(nbins), scratch=scratch)
             if not big.all():
                 mid[~big] = _split_morton(pcodes, perm, s[~big], c[~big])
             return mid
@@ -289,6 +382,7 @@ def build_binary(tlo, thi, leaf_size=4, method="hlbvh", bins=16, cluster_bits=6,
         chi = np.maximum.reduceat(thi.take(order, axis=0), cstart, axis=0)
         soa = np.ascontiguousarray(np.concatenate([(clo + chi) * F32(0.5), clo, chi], axis=1).T)
         corder = np.arange(len(cstart))
+        cscratch = _Scratch(len(cstart))
         crec = []
         wcum = [None]
 
@@ -297,7 +391,7 @@ def build_binary(tlo, thi, leaf_size=4, method="hlbvh", bins=16, cluster_bits=6,
             return (c > 1) & (wcum[0][s + c] - wcum[0][s] > leaf_size)
 
         def c_split(s, c):
-            return _split_sah(corder, soa, s, c, bins, ccount)
+            return _split_sah(corder, soa, s, c, bins, ccount, scratch=cscratch)
 
         next_id = _grow(zero, np.full(1, len(cstart), np.int64), zero, zero, c_splittable, c_split, 1, crec)
         # back to triangle ranges: clusters laid out in their final order

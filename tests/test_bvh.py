@@ -308,3 +308,50 @@ def test_stats_describe_the_tree_and_the_last_trace():
     bvh.trace(o, d)
     s = bvh.stats()
     assert s["last_rays"] == 400 and s["nodes_per_ray"] >= 1 and s["triangles_per_ray"] >= s["leaves_per_ray"] > 0, s
+
+
+# -- the build's reused work arrays ------------------------------------------------------------
+
+
+def test_segments_in_reused_buffers_equal_freshly_allocated_ones():
+    from hybrid_raycast.core.bvh import _Scratch, _segments
+
+    rng = np.random.default_rng(3)
+    ws = _Scratch(5000)
+    for k in (1, 7, 300):
+        count = rng.integers(1, 12, k)
+        start = np.cumsum(rng.integers(0, 5, k)) + np.concatenate([[0], np.cumsum(count)[:-1]])
+        ref = _segments(start, count)
+        got = _segments(start, count, ws)
+        for a, b in zip(ref, got):
+            np.testing.assert_array_equal(a, b)
+    # a zero count (no split makes one) falls back to np.repeat, still correct
+    count, start = np.array([2, 0, 3]), np.array([0, 2, 2])
+    for a, b in zip(_segments(start, count), _segments(start, count, ws)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_sah_splits_sharing_one_scratch_equal_splits_each_with_its_own():
+    """Levels of different sizes, sampled (nodes over SAH_SAMPLE) and not, reuse buffers a
+    larger level left behind: the partitions must be those of fresh buffers."""
+    from hybrid_raycast.core.bvh import _Scratch, _split_sah
+
+    rng = np.random.default_rng(5)
+    n = 6000
+    cen = rng.random((n, 3)).astype(np.float32)
+    soa = np.ascontiguousarray(np.concatenate([cen, cen - 0.01, cen + 0.01], axis=1).T)
+    shared = _Scratch(n)
+    levels = [(np.array([0]), np.array([n])),  # one node binned from a sample
+              (np.array([0, 2500]), np.array([2500, 3500])),  # sampled, two nodes
+              (np.arange(0, n, 600), np.full(10, 600)),  # every item binned
+              (np.arange(0, 300, 30), np.full(10, 30))]  # a small level after large ones
+    for start, count in levels:
+        a, b = np.arange(n), np.arange(n)
+        mid_a = _split_sah(a, soa, start, count, 16)
+        mid_b = _split_sah(b, soa, start, count, 16, scratch=shared)
+        np.testing.assert_array_equal(mid_a, mid_b)
+        np.testing.assert_array_equal(a, b)
+        assert ((mid_b > start) & (mid_b < start + count)).all()
+        for s, c, m in zip(start, count, mid_b):  # a stable partition inside each node
+            np.testing.assert_array_equal(np.sort(b[s:s + c]), np.arange(s, s + c))
+            assert (np.diff(b[s:m]) > 0).all() and (np.diff(b[m:s + c]) > 0).all()
