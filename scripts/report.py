@@ -502,6 +502,19 @@ def write_markdown(path: Path, R: dict):
           + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep["coefficients"].items())
           + ". Per-ray times they predict on the evaluated scenes' counts, median (max) difference: "
           + ", ".join(f"{k} {fnum(v['median'], 1)}% ({fnum(v['max'], 1)}%)" for k, v in crep["per_ray"].items()) + ".\n")
+        if crep.get("large_builds"):
+            w("The builds on the calibration scenes of at least 262,144 triangles, in each calibration (medians of "
+              "its passes): time, the process's minor page faults and its system CPU time during the build.\n")
+            w("| scene | N | structure | build ms (1st, 2nd) | apart | page faults (1st, 2nd) | system ms (1st, 2nd) |")
+            w("|---|---:|---|---:|---:|---:|---:|")
+
+            def pair(v, scale=1.0, digits=0):
+                return ", ".join("-" if x is None else f"{x * scale:,.{digits}f}" for x in v)
+
+            for b in crep["large_builds"]:
+                w(f"| {b['scene']} | {b['triangles']:,} | {b['kind']} | {pair(b['build'], 1e3)} | "
+                  f"{fnum(rep.relative_difference(*b['build']), 1)}% | {pair(b['faults'])} | {pair(b['system'], 1e3)} |")
+            w("")
     # -- per scene
     w(f"## Break-even per scene ({cal['model']} model, the plan's grid estimate)\n")
     counted = any((s["extra"].get("work") or {}).get("cells") is not None for s in R["scenes"])
@@ -889,12 +902,37 @@ def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> di
             if all(math.isfinite(x) for x in r):
                 bes.append(max(r) / min(r))
     coefs = rep.constants_apart(cal, cal2, stated=False)
-    return {"constants": consts, "max_constant": max(consts.values(), default=math.nan),
+    return {"constants": consts, "large_builds": large_builds(cal, cal2), "max_constant": max(consts.values(), default=math.nan),
             "median_constant": median_finite(list(consts.values())),
             "coefficients": coefs, "max_coefficient": max(coefs.values(), default=math.nan),
             "median_coefficient": median_finite(list(coefs.values())),
             "per_ray": {k: {"median": median_finite(v), "max": max(v)} for k, v in preds.items()},
             "break_even_ratio": {"median": median_finite(bes), "max": max(bes, default=math.nan), "scenes": len(bes)}}
+
+
+#: the calibration scenes whose builds the two-calibrations table lists (the large builds
+#: the build constants at 262,144 and 1,048,576 triangles come from)
+LARGE_BUILD = 262_144
+
+
+def large_builds(cal: Calibration, cal2: Calibration) -> list[dict]:
+    """Each structure's build on the calibration scenes of at least ``LARGE_BUILD``
+    triangles in both calibrations: median time, page faults and system seconds (None
+    where a file does not have them), so the report can say how much of a build
+    constant's difference is the kernel's."""
+    second = {r.name: r for r in cal2.scenes}
+    rows = []
+    for r in cal.scenes:
+        r2 = second.get(r.name)
+        if r2 is None or r.triangles < LARGE_BUILD:
+            continue
+        for k, m in r.kinds.items():
+            m2 = r2.kinds.get(k)
+            if m2 is not None:
+                rows.append({"scene": r.name, "triangles": r.triangles, "kind": k,
+                             "build": [m.build_time, m2.build_time], "faults": [m.build_faults, m2.build_faults],
+                             "system": [m.build_system, m2.build_system]})
+    return rows
 
 
 def calls_of_1000(scenes, kind: str = "bvh") -> dict:

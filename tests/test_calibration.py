@@ -15,6 +15,7 @@ import pytest
 from hybrid_raycast.core.decide import calfile as CF
 from hybrid_raycast.core.decide import measurements as M
 from hybrid_raycast.core import scenes as S
+from hybrid_raycast.core.rays import uniform_rays
 from hybrid_raycast.core.decide import (
     CALIBRATION_FORMAT,
     Calibration,
@@ -520,3 +521,33 @@ def test_calibrate_runs_the_jobs_beside_it_in_its_own_passes_and_hands_back_thei
     assert got["runs"] == [{"x": [3, 7]}, {"x": [4, 8]}]
     assert [len(s) for s in got["shares"]] == [2, 2]
     assert [r.kinds["bvh"].build_time for r in cal.scenes] == [3.0, 4.0]  # medians of (1, 5) and (2, 6)
+
+
+# -- the kernel's part of a build -----------------------------------------------------------------
+
+def test_a_measured_build_records_its_page_faults_and_system_time(tmp_path):
+    resource = pytest.importorskip("resource", reason="getrusage is POSIX only; elsewhere the fields stay None")
+    mesh = S.terrain(20000)
+    o, d = uniform_rays(mesh, 1000, seed=0)
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    m = M.measure(mesh, "bvh", o, d, threads=1)
+    f1 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    assert isinstance(m.build_faults, int) and 0 <= m.build_faults <= f1 - f0
+    assert isinstance(m.build_system, float) and 0.0 <= m.build_system <= m.build_time + 0.05
+    # the calibration file keeps them; a file without them (older) loads as None
+    rec = SceneRecord("t", mesh.triangle_count, 1000, {"bvh": m, "grid": Measurement(0.005, 0.03, 1000)})
+    cal = Calibration({"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}, scenes=[rec], source="hand",
+                      created="2026-01-01T00:00:00+00:00")
+    back = load(cal.save(tmp_path / "cal.json")).scenes[0].kinds
+    assert (back["bvh"].build_faults, back["bvh"].build_system) == (m.build_faults, m.build_system)
+    assert back["grid"].build_faults is None and back["grid"].build_system is None
+
+
+def test_median_measurement_takes_the_kernel_figures_only_when_every_run_has_them():
+    runs = [Measurement(0.3, 1.0, 10, 2, 100, 0.01), Measurement(0.1, 3.0, 10, 2, 301, 0.03),
+            Measurement(0.2, 2.0, 10, 2, 200, 0.02)]
+    m = M.median_measurement(runs)
+    assert (m.build_time, m.trace_time, m.build_faults, m.build_system) == (0.2, 2.0, 200, 0.02)
+    m = M.median_measurement(runs + [Measurement(0.25, 2.5, 10, 2)])
+    assert (m.build_time, m.trace_time) == pytest.approx((0.225, 2.25), rel=1e-12)
+    assert (m.build_faults, m.build_system) == (None, None)

@@ -366,3 +366,21 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
             assert f"]({p})" in md, f"report.md does not show {p}"
     else:
         assert "no plots" in md
+
+
+def test_large_builds_list_both_calibrations_builds_with_their_page_faults():
+    R = report_script()
+    fits = {"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}
+
+    def cal(bvh_1m, faults):
+        recs = [SceneRecord("small", 1024, 100, {"bvh": Measurement(0.001, 0.01, 100, 2, 10, 0.0)}),
+                SceneRecord("big", 1_048_576, 100, {"bvh": Measurement(bvh_1m, 0.5, 100, 2, faults, 0.25),
+                                                    "grid": Measurement(0.4, 0.6, 100, 2)}),
+                SceneRecord("only here", 300_000, 100, {"bvh": Measurement(0.3, 0.2, 100, 2)})]
+        return Calibration(fits, scenes=recs if faults else recs[:2], source="hand", created="2026-01-01T00:00:00+00:00")
+
+    rows = R.large_builds(cal(1.2, 120_000), cal(0.8, None))
+    assert [(r["scene"], r["kind"]) for r in rows] == [("big", "bvh"), ("big", "grid")]  # >= 262,144 in both
+    assert rows[0] == {"scene": "big", "triangles": 1_048_576, "kind": "bvh", "build": [1.2, 0.8],
+                       "faults": [120_000, None], "system": [0.25, 0.25]}
+    assert rows[1]["faults"] == [None, None]

@@ -66,12 +66,18 @@ def log2n(n: int) -> float:
 
 @dataclass
 class Measurement:
-    """One structure on one scene: build time and the time of ``rays`` rays, in seconds."""
+    """One structure on one scene: build time and the time of ``rays`` rays, in seconds.
+
+    build_faults, build_system: the page faults the process took during the build and its
+    system CPU seconds then (None where the OS does not say, and in older files): the
+    kernel's part of a build's time, which moves with the machine's state."""
 
     build_time: float
     trace_time: float
     rays: int
     threads: int = 1
+    build_faults: int | None = None
+    build_system: float | None = None
 
     @property
     def per_ray(self) -> float:

@@ -98,9 +98,23 @@ def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurem
     cfg = dict(config or {})
     if threads is not None:
         cfg.setdefault("threads", threads)
+    k0 = _kernel_usage()
     accel = build(mesh, kind, **cfg)
+    k1 = _kernel_usage()
     _, dt = time_trace(accel, origins, directions)
-    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads)), accel
+    faults, system = (None, None) if k0 is None else (k1[0] - k0[0], k1[1] - k0[1])
+    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads), faults, system), accel
+
+
+def _kernel_usage() -> tuple[int, float] | None:
+    """(minor page faults, system CPU seconds) of this process so far, all its threads
+    (None where there is no ``resource`` module: Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return int(r.ru_minflt), float(r.ru_stime)
 
 
 def unavailable_reason(kind: str) -> str | None:
@@ -426,9 +440,14 @@ def quiet_notes(shares, quiet: float | None) -> list[str]:
 
 
 def median_measurement(runs) -> Measurement:
-    """Median build time and median trace time of repeated Measurements of one structure."""
-    return Measurement(float(np.median([m.build_time for m in runs])), float(np.median([m.trace_time for m in runs])),
-                       runs[0].rays, runs[0].threads)
+    """Median build time, trace time and build page faults and system time (where every
+    run has them) of repeated Measurements of one structure."""
+    def med(name, cast=float):
+        v = [getattr(m, name) for m in runs]
+        return None if any(x is None for x in v) else cast(np.median(v))
+
+    return Measurement(med("build_time"), med("trace_time"), runs[0].rays, runs[0].threads,
+                       med("build_faults", lambda x: int(round(x))), med("build_system"))
 
 
 def _size_hint(factory) -> float:
