@@ -551,3 +551,45 @@ def test_median_measurement_takes_the_kernel_figures_only_when_every_run_has_the
     m = M.median_measurement(runs + [Measurement(0.25, 2.5, 10, 2)])
     assert (m.build_time, m.trace_time) == pytest.approx((0.225, 2.25), rel=1e-12)
     assert (m.build_faults, m.build_system) == (None, None)
+
+
+def test_each_measured_build_comes_right_after_its_scenes_memory_is_written(monkeypatch):
+    """The page warming runs before every timed build, sized from that scene, and nothing
+    else comes between it and the build (on a VM whose host takes idle memory back, a build
+    after an idle gap waited for the host, issue 14)."""
+    log = []
+    monkeypatch.setattr(M, "warm_pages", lambda n: log.append(("warm", n)))
+    real_build = M.build
+    monkeypatch.setattr(M, "build", lambda mesh, kind, **cfg: log.append(("build", kind)) or real_build(mesh, kind, **cfg))
+    small, large = S.sphere(80), S.soup(3000, seed=1)
+    o, d = uniform_rays(small, 50, seed=0)
+    M.measure(small, "grid", o, d, threads=1)
+    M.measure(large, "bvh", o, d, threads=1)
+    assert log == [("warm", M.warm_bytes(small.triangle_count)), ("build", "grid"),
+                   ("warm", M.warm_bytes(large.triangle_count)), ("build", "bvh")]
+
+
+def test_warm_bytes_is_512_a_triangle_between_16_mib_and_1_gib_and_an_eighth_of_free_memory(monkeypatch):
+    page = 4096
+    free = {"pages": 1 << 30}  # 4 TiB free: no cap from it
+    monkeypatch.setattr(M.os, "sysconf", lambda name: {"SC_AVPHYS_PAGES": free["pages"], "SC_PAGE_SIZE": page}[name])
+    assert M.warm_bytes(0) == M.warm_bytes(1000) == 16 << 20
+    assert M.warm_bytes(1_000_000) == 512_000_000
+    assert M.warm_bytes(3_000_000) == 1 << 30
+    free["pages"] = (800 << 20) // page  # 800 MiB free: at most 100 MiB
+    assert M.warm_bytes(1_000_000) == 100 << 20
+    assert M.warm_bytes(10) == 16 << 20
+
+
+def test_warm_pages_writes_the_memory_it_is_asked_for_and_keeps_none_of_it():
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        M.warm_pages(8 << 20)
+        current, peak = tracemalloc.get_traced_memory()
+        M.warm_pages(0)
+        M.warm_pages(-5)
+    finally:
+        tracemalloc.stop()
+    assert peak >= 8 << 20 and current < 1 << 20

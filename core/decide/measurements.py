@@ -98,12 +98,59 @@ def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurem
     cfg = dict(config or {})
     if threads is not None:
         cfg.setdefault("threads", threads)
+    warm_pages(warm_bytes(mesh.triangle_count))
     k0 = _kernel_usage()
     accel = build(mesh, kind, **cfg)
     k1 = _kernel_usage()
     _, dt = time_trace(accel, origins, directions)
     faults, system = (None, None) if k0 is None else (k1[0] - k0[0], k1[1] - k0[1])
     return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads), faults, system), accel
+
+
+#: memory written just before each timed build (``warm_pages``), per triangle and at least /
+#: at most: above the largest build's fresh pages (the numpy BVH's peak is ~310 bytes a
+#: triangle at 1M triangles; Embree's first build at 1M took 156 huge pages, ~310 MB)
+WARM_BYTES_PER_TRIANGLE = 512
+WARM_MIN_BYTES = 16 << 20
+WARM_MAX_BYTES = 1 << 30
+
+
+def warm_bytes(triangles: int) -> int:
+    """How much memory ``_measure`` writes before building over ``triangles``: 512 bytes a
+    triangle, 16 MiB to 1 GiB, and at most an eighth of the memory free now."""
+    n = min(WARM_MAX_BYTES, max(WARM_MIN_BYTES, WARM_BYTES_PER_TRIANGLE * int(triangles)))
+    try:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return n
+    return int(max(0, min(n, free // 8)))
+
+
+def warm_pages(nbytes: int) -> None:
+    """Write one byte in every 4 KiB of ``nbytes`` of fresh memory and free it, so a build
+    right after takes pages the machine has just used.
+
+    On a virtual machine whose host takes back the memory its guest leaves free (the
+    balloon's free page reporting, on this project's Firecracker VM), memory a process
+    freed and left idle for a couple of seconds is handed back to the host, and the next
+    process to touch it waits for the host to supply every page again.  Measured here
+    (``/work/scratch``-style loop: 512 MB written after an idle gap): 36-73 ms after idling
+    0-1 s, 1.2-1.5 s after 3-10 s, all of it system time.  So a build's time depended on
+    how long the machine had rested before it, not on the scene: two calibrations in a row
+    gave the numpy BVH's build at 1M triangles 1,254 and 901 ms (the first's system time
+    341 ms, the second's 0) and Embree's 165 and 373 ms (system 20 and 253 ms).  With the
+    pages written just before it, the BVH build at 1M triangles took 53-74 ms of system
+    time where it took 175-373 ms without, and Embree's 11-18 ms where it took 33-185 ms
+    after an idle gap.  The pages the kernel hands out next are the ones freed last, so the
+    build gets memory that is already backed; on a machine without such a host this costs
+    a few ms (a write of up to 1 GiB of pages the kernel zeroes) and changes nothing else.
+    """
+    n = int(nbytes)
+    if n <= 0:
+        return
+    a = np.empty(n, dtype=np.uint8)
+    a[::4096] = 1
+    del a
 
 
 def _kernel_usage() -> tuple[int, float] | None:
