@@ -133,17 +133,18 @@ def warm_pages(nbytes: int) -> None:
     On a virtual machine whose host takes back the memory its guest leaves free (the
     balloon's free page reporting, on this project's Firecracker VM), memory a process
     freed and left idle for a couple of seconds is handed back to the host, and the next
-    process to touch it waits for the host to supply every page again.  Measured here
-    (``/work/scratch``-style loop: 512 MB written after an idle gap): 36-73 ms after idling
-    0-1 s, 1.2-1.5 s after 3-10 s, all of it system time.  So a build's time depended on
+    process to touch it waits for the host to supply every page again.  Measured here,
+    writing 512 MB after an idle gap: 36-73 ms after idling 0-1 s, 1.2-1.5 s after 3-10 s,
+    all of it system time.  So a build's time depended on
     how long the machine had rested before it, not on the scene: two calibrations in a row
     gave the numpy BVH's build at 1M triangles 1,254 and 901 ms (the first's system time
     341 ms, the second's 0) and Embree's 165 and 373 ms (system 20 and 253 ms).  With the
     pages written just before it, the BVH build at 1M triangles took 53-74 ms of system
     time where it took 175-373 ms without, and Embree's 11-18 ms where it took 33-185 ms
     after an idle gap.  The pages the kernel hands out next are the ones freed last, so the
-    build gets memory that is already backed; on a machine without such a host this costs
-    a few ms (a write of up to 1 GiB of pages the kernel zeroes) and changes nothing else.
+    build gets memory that is already backed; on a machine without such a host it costs
+    the pages' zeroing, ~40 ms for the 512 MB of a 1M-triangle scene, and changes nothing
+    else (BENCHMARKS.md, twelfth session).
     """
     n = int(nbytes)
     if n <= 0:
