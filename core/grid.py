@@ -27,6 +27,8 @@ because the comparison is ``<=`` and a point on a face belongs to both enlarged 
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from .accel import LOCKSTEP_CHUNK, Accel
@@ -195,6 +197,8 @@ class UniformGrid(Accel):
         self.prefilter = bool(prefilter)
         self.skip = bool(skip)
         self.pool = max(1, int(pool))
+        self._work = {}  # calling thread: its traces' totals (``traversal_work``)
+        self._work_lock = threading.Lock()
         super().__init__(mesh, **kw)
 
     # -- build -----------------------------------------------------------------------
@@ -458,8 +462,36 @@ class UniformGrid(Accel):
         best = None if any_hit else NearestHits(m)
         hit = np.zeros(m, bool)
         R = np.empty((7, m), np.float32) if self.prefilter else None  # filled as rays are handed out
-        self._shared(lambda supply: self._lockstep(rays, best, hit, R, supply), m)
+        done = self._shared(lambda supply: self._lockstep(rays, best, hit, R, supply), m)
+        got = (m, *(sum(c[i] for c in done) for i in range(3)))
+        with self._work_lock:
+            me = threading.get_ident()
+            self._work[me] = tuple(a + b for a, b in zip(self._work.get(me, (0, 0, 0, 0)), got))
         return hit if any_hit else self._finished(best, rays, self.mesh.tri_vertices)
+
+    def __getstate__(self):  # a lock does not pickle; the counts are this process's
+        return {k: v for k, v in self.__dict__.items() if k not in ("_work", "_work_lock")}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._work, self._work_lock = {}, threading.Lock()
+
+    def traversal_work(self) -> dict:
+        """What the calling thread's traces and occlusion queries through this grid cost so
+        far, summed over their rays (counts, not times: the same rays give the same
+        numbers on any machine and with any number of threads):
+
+        - rays: the rays traced;
+        - steps: lockstep iterations a ray took part in (a DDA step, a jump over empty
+          space, or a finished ray's last check);
+        - candidates: (ray, triangle reference) pairs of the non-empty cells stepped;
+        - tests: the pairs left for the intersection kernel by the box prefilter.
+
+        Take the difference of two calls around a trace for that trace's counts
+        (``decide.work.traversal_counts``); other threads' traces are not in it."""
+        with self._work_lock:
+            w = self._work.get(threading.get_ident(), (0, 0, 0, 0))
+        return dict(zip(("rays", "steps", "candidates", "tests"), w))
 
     def _lockstep(self, rays: Rays, best: NearestHits | None, hit: np.ndarray, R, supply):
         """The DDA for the rays this thread draws from ``supply`` (``RaySupply``), all live
@@ -471,19 +503,23 @@ class UniformGrid(Accel):
         its first hit.  Stepping out of the box by float rounding lands in the padding of
         ``cell_start`` (empty) or in a wrapped-around cell (extra tests never change a
         nearest hit), and the next check ends the ray.
+        Returns this thread's (steps, candidate pairs, pairs tested), for ``traversal_work``.
         """
         any_hit = best is None
         tv = self.mesh.tri_vertices
         F, I = np.empty((9, 0), F64), np.empty((5, 0), np.int64)
+        count = [0, 0, 0]  # (steps, candidate pairs, pairs tested) of this thread
         starts, code_of, tris, tmax = self._starts, self._cell_code, self.cell_tris, rays.tmax
 
         def pairs(rr, ss, cc):
             Rz = None if R is None else np.take(R, rr, axis=1)  # per ray, gathered per pair below
             for owner, rank in _pieces(cc, self.pair_cap):
                 ref = np.take(ss, owner) + rank
+                count[1] += len(owner)
                 if Rz is not None:
                     k = self._box_filter(Rz, owner, ref)
                     owner, ref = np.take(owner, k), np.take(ref, k)
+                count[2] += len(owner)
                 tri = np.take(tris, ref)
                 yield owner, np.take(rr, owner), tri
         while True:
@@ -498,7 +534,8 @@ class UniformGrid(Accel):
             if not I.shape[1]:
                 if supply.left:
                     continue
-                break
+                return count
+            count[0] += I.shape[1]
             # empty-space skip: a ray in an empty cell whose cube of radius r around it is
             # empty moves to the cell of that cube where its path leaves the cube.  Per axis
             # it crosses n = ceil((t_out - t_next) / t_delta) boundaries before t_out,

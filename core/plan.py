@@ -46,7 +46,7 @@ from .decide.calfile import Calibration, load_default
 from .decide.cost import break_even
 from .decide.measurements import prepare_mesh, available_kinds, time_trace, unavailable_reason
 from .decide.rule import REUSES_SAMPLES, choose
-from .decide.work import DEFAULT_SAMPLES, grid_work
+from .decide.work import DEFAULT_SAMPLES, grid_work, traversal_counts
 from .hits import Hits
 from .mesh import TriangleMesh
 
@@ -447,7 +447,10 @@ def plan(
                      f"calibration's extremes")
     elif mesh.triangle_count:
         o, d, tmin, tmax, what, idx = _sample_rays(mesh, rays, k, seed)
+        counted = getattr(grid, "traversal_work", None)
+        before = counted() if counted else None
         sample, dt = time_trace(grid, o, d, tmin, tmax)
+        traversal = traversal_counts(before, counted()) if counted else None
         k = len(o)
         t_sample = dt / max(k, 1)
     else:
@@ -458,7 +461,8 @@ def plan(
     if k and calibration.counts.get("grid") is not None:
         # counts instead of the sample's time: the same rays through the same grid give the
         # same counts, so the estimate repeats exactly with a fixed calibration
-        work = grid_work(grid, o, d, sample.t, tmin, tmax, refs=calibration.uses_term("refs")).to_dict()
+        work = grid_work(grid, o, d, sample.t, tmin, tmax, refs=calibration.uses_term("refs"),
+                         traversal=traversal).to_dict()
         g, g_lo, g_hi = calibration.count_per_ray("grid", mesh.triangle_count, work)
         per_ray = {kk: e for kk in kinds if kk != "grid"
                    if (e := calibration.count_per_ray(kk, mesh.triangle_count, work)) is not None}
@@ -471,8 +475,10 @@ def plan(
     p.work = work
     if work is not None:
         refs = "" if work["refs"] is None else f", {work['refs']:.1f} references"
+        walked = "" if work.get("steps") is None else (f" ({work['steps']:.1f} traversal steps, "
+                                                       f"{work['tests']:.1f} triangle tests)")
         p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells"
-                       f"{refs} per ray; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
+                       f"{refs} per ray{walked}; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
     elif k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
                        f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")

@@ -726,3 +726,36 @@ def test_stating_constants_at_a_reference_changes_no_prediction():
         for n, w in ((800, {"cells": 2.0}), (5_000_000, {"cells": 200.0})):
             assert new.predict(n, w) == pytest.approx(raw.predict(n, w), rel=1e-12)
         assert (new.low, new.high) == pytest.approx((raw.low, raw.high), rel=1e-12)
+
+
+def test_a_plan_and_a_calibration_keep_the_grid_traversal_counts_of_their_sample(tmp_path):
+    """The plan's sample and the calibration's work sample carry what the traversal did
+    (steps, candidate pairs, kernel tests per ray), equal to the grid's own counts of the
+    same rays; a calibration file keeps them, and a count absent from a Work (None) is
+    left out of the file's record instead of failing its load."""
+    from hybrid_raycast.core import plan, scenes as S, uniform_rays
+    from hybrid_raycast.core.decide import calfile
+    from hybrid_raycast.core.decide.measurements import sample_work
+    from hybrid_raycast.core.factory import build
+
+    mesh = S.torus(3000)
+    cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, source="hand",
+                      counts={"grid": cost.CountFit(("1", "cells"), (1e-7, 3e-8), 0.8, 1.25, 5)})
+    grid = build(mesh, "grid", threads=1)
+    p = plan(mesh, 1e6, cal, samples=2000, seed=3, grid=grid)
+    done = grid.traversal_work()
+    assert done["rays"] == 2000
+    for k in ("steps", "candidates", "tests"):
+        assert p.work[k] == pytest.approx(done[k] / 2000, rel=1e-12)
+    assert 0 < p.work["tests"] < p.work["candidates"] and p.work["steps"] > 1
+    assert any("traversal steps" in n for n in p.notes)
+    w = sample_work(mesh, 1500, threads=1, seed=4)
+    g2 = build(mesh, "grid", threads=1)
+    o, d = uniform_rays(mesh, 1500, seed=4)
+    g2.trace(o, d)
+    assert w.steps == pytest.approx(g2.traversal_work()["steps"] / 1500, rel=1e-12)
+    rec = SceneRecord("t", 3000, 1, {"bvh": Measurement(1e-3, 1e-3, 1)}, {}, {**w.to_dict(), "refs": None})
+    back = calfile.load(Calibration(cal.fits, scenes=[rec], source="hand", counts=cal.counts).save(tmp_path / "c.json"),
+                        check_version=False)
+    assert back.scenes[0].work["tests"] == pytest.approx(w.tests) and "refs" not in back.scenes[0].work
+    assert cost.terms(3000, back.scenes[0].work)["steps"] == pytest.approx(w.steps)

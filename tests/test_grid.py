@@ -438,3 +438,56 @@ def test_stats_report_resolution_cells_references_and_memory():
     assert 0.0 <= s["empty_cell_fraction"] < 1.0
     assert s["memory_bytes"] >= grid.cell_start.nbytes + grid.cell_tris.nbytes
     assert isinstance(grid, UniformGrid) and grid.build_time >= 0
+
+
+# -- the traversal's own work counts (issue 14) ---------------------------------------------
+
+def _counted(g, o, d):
+    before = g.traversal_work()
+    g.trace(o, d)
+    after = g.traversal_work()
+    return {k: after[k] - before[k] for k in after}
+
+
+def test_traversal_steps_are_the_dda_cells_of_each_ray_without_skipping():
+    """One ray at a time (no parked rays) and no empty-space skip: a ray takes one step per
+    cell the DDA visits, the count ``decide.work.grid_work`` computes from the geometry."""
+    from hybrid_raycast.core.decide.work import grid_work
+
+    m = torus()
+    g = UniformGrid(m, skip=False, threads=1)
+    o, d = core.uniform_rays(m, 40, seed=5)
+    apart = []
+    for i in range(len(o)):
+        got = _counted(g, o[i:i + 1], d[i:i + 1])
+        cells = grid_work(g, o[i:i + 1], d[i:i + 1], g.trace(o[i:i + 1], d[i:i + 1]).t, refs=False).cells
+        assert got["rays"] == 1
+        apart.append(got["steps"] - cells)
+    # grid_work ends a ray at the unpadded box: leaving near a boundary may take a step more
+    assert set(apart) <= {0, 1} and apart.count(0) >= 0.9 * len(apart)
+
+
+def test_traversal_counts_skip_prefilter_threads_and_callers():
+    m = torus()
+    o, d = core.uniform_rays(m, 3000, seed=6)
+    plain = _counted(UniformGrid(m, skip=False, threads=1), o, d)
+    skip1 = _counted(UniformGrid(m, threads=1), o, d)
+    skip2 = _counted(UniformGrid(m, threads=2), o, d)
+    assert skip1 == skip2  # each ray's work is its own, whichever thread steps it
+    assert skip1["steps"] < plain["steps"]  # jumps over empty space are one step each
+    assert skip1["candidates"] == plain["candidates"]  # skipped cells hold no reference
+    assert 0 < skip1["tests"] < skip1["candidates"]  # the box prefilter drops pairs
+    nofilter = _counted(UniformGrid(m, prefilter=False, threads=1), o, d)
+    assert nofilter["tests"] == nofilter["candidates"] == skip1["candidates"]
+    # another thread's traces are not in this thread's totals
+    import threading
+
+    g = UniformGrid(m, threads=1)
+    t = threading.Thread(target=g.trace, args=(o, d))
+    t.start()
+    t.join()
+    assert g.traversal_work() == {"rays": 0, "steps": 0, "candidates": 0, "tests": 0}
+    import pickle
+
+    g.trace(o[:10], d[:10])
+    assert pickle.loads(pickle.dumps(g)).traversal_work()["rays"] == 0

@@ -224,7 +224,7 @@ class Calibration:
             scenes = [
                 SceneRecord(s["name"], int(s["triangles"]), int(s["rays"]), {k: Measurement(**m) for k, m in s["kinds"].items()},
                             {int(k): float(v) for k, v in s.get("grid_samples", {}).items()},
-                            {str(k): float(v) for k, v in s.get("work", {}).items()})
+                            {str(k): float(v) for k, v in s.get("work", {}).items() if v is not None})
                 for s in d.get("scenes", [])
             ]
             model = str(d.get("model", DEFAULT_MODEL))

@@ -518,11 +518,13 @@ def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread
 
 def terms(triangles: int, work: dict) -> dict[str, float]:
     """The named quantities a count model may weigh, for one scene: its size and the grid
-    sample's per-ray means (``work.Work``)."""
+    sample's per-ray means (``work.Work``; the traversal's own counts only where the file
+    recorded them)."""
     lg = log2n(triangles)
     # a count the sample did not take (refs when no model weighs them) is absent, so a
     # model that needs it fails by name instead of reading a zero
-    w = {k: float(v) for k in ("cells", "refs", "hit", "length") if (v := work.get(k)) is not None}
+    w = {k: float(v) for k in ("cells", "refs", "hit", "length", "steps", "candidates", "tests")
+         if (v := work.get(k)) is not None}
     out = {"1": 1.0, "log2n": lg, **w}
     for k in ("hit", "length"):
         if k in w:

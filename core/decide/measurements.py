@@ -20,7 +20,7 @@ from ..accel import LOCKSTEP_CHUNK, Accel
 from ..factory import build
 from ..mesh import TriangleMesh
 from .calfile import Calibration
-from .work import Work, grid_work
+from .work import Work, grid_work, traversal_counts
 from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, break_even, fit, fit_counts, nlog2n
 
 #: rays per scene for each calibration scale.  A structure's time per ray falls with the
@@ -461,7 +461,9 @@ def sample_work(mesh, k: int, *, threads=None, config=None, seed=0) -> Work:
         cfg.setdefault("threads", threads)
     grid = build(mesh, "grid", **cfg)
     o, d = uniform_rays(mesh, int(k), seed=seed)
-    return grid_work(grid, o, d, grid.trace(o, d).t)
+    before = grid.traversal_work()
+    t = grid.trace(o, d).t
+    return grid_work(grid, o, d, t, traversal=traversal_counts(before, grid.traversal_work()))
 
 
 def quiet_notes(shares, quiet: float | None) -> list[str]:

@@ -14,7 +14,12 @@ From the sample's hits and the grid's public geometry (``lo``, ``cell_size``, ``
   ``REFS_RAYS`` of the rays, evenly spread); counted only when asked (calibration counts
   it for the models that may weigh it; a plan only when its calibration's models do,
   since it is a fifth of the estimate's cost);
-- hit: whether it hit; length: its segment in the grid over the grid's diagonal.
+- hit: whether it hit; length: its segment in the grid over the grid's diagonal;
+- steps, candidates, tests: what the grid's traversal really did for these rays, counted
+  by the grid as it traced them (``UniformGrid.traversal_work``): lockstep steps (a jump
+  over empty space is one, where ``cells`` counts every cell it crosses), (ray, reference)
+  pairs of the non-empty cells stepped, and pairs the kernel tested after the box
+  prefilter.  Absent (None) where the rays were not traced by this grid with counting.
 
 A cost model turns the means of these into times with constants fitted on the
 calibration scenes (``cost.CountModel``), so a fixed calibration gives a fixed estimate.
@@ -53,15 +58,39 @@ class Work:
     refs: float | None
     hit: float
     length: float
+    steps: float | None = None
+    candidates: float | None = None
+    tests: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf, *, refs: bool = True) -> Work:
+#: the traversal's own counts (``UniformGrid.traversal_work``) a Work carries, per ray
+TRAVERSAL = ("steps", "candidates", "tests")
+
+
+def traversal_counts(before: dict, after: dict) -> dict:
+    """The per-ray means of the traversal counts between two ``traversal_work()`` readings
+    of one grid in one thread (the trace between them); {} when no ray was traced."""
+    rays = after["rays"] - before["rays"]
+    return {k: (after[k] - before[k]) / rays for k in TRAVERSAL} if rays > 0 else {}
+
+
+def grid_work(grid, origins, directions, t_hit, tmin=0.0, tmax=np.inf, *, refs: bool = True,
+              traversal: dict | None = None) -> Work:
     """Per-ray work counts of the rays ``origins + t directions`` through ``grid``, whose
     nearest hits are at ``t_hit`` (inf for a miss), averaged over the rays; ``refs=False``
-    leaves the reference count out (None)."""
+    leaves the reference count out (None).  traversal: the grid's own counts of the trace
+    that found ``t_hit`` (``traversal_counts``), kept as they are."""
+    w = _geometric_work(grid, origins, directions, t_hit, tmin, tmax, refs)
+    for k, v in (traversal or {}).items():
+        setattr(w, k, float(v))
+    return w
+
+
+def _geometric_work(grid, origins, directions, t_hit, tmin, tmax, refs: bool) -> Work:
+    """``grid_work``'s counts from the rays and the grid's geometry alone."""
     o = np.asarray(origins, np.float64)
     d = np.asarray(directions, np.float64)
     m = len(o)
