@@ -257,11 +257,17 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         default="NONE")
     grid_build_time: _time("Grid Build", "Measured build time of the uniform grid")
     grid_per_ray: _time("Grid per Ray", "Grid time per ray on a large workload: from the sample rays' work counts "
-                        "(cells, references) with the calibrated count model, or else their measured time times the "
-                        "calibrated batch ratio")
+                        "(traversal steps and candidate triangles, or cells with an older calibration) with the "
+                        "calibrated count model, or else their measured time times the calibrated batch ratio")
     grid_cells_per_ray: FloatProperty(
         name="Cells per Ray", description="Grid cells a sample ray steps through, on average (0 when the estimate "
         "came from the sample's time instead of its work counts)", min=0.0, precision=1)
+    grid_steps_per_ray: FloatProperty(
+        name="Steps per Ray", description="Steps the grid's traversal took per sample ray, on average: a jump over "
+        "empty space is one step (0 when the sample's traversal was not counted)", min=0.0, precision=1)
+    grid_candidates_per_ray: FloatProperty(
+        name="Candidates per Ray", description="Triangle references in the cells the traversal stopped in, per "
+        "sample ray, on average (0 when the sample's traversal was not counted)", min=0.0, precision=1)
     grid_refs_per_ray: FloatProperty(
         name="References per Ray", description="Triangle references in those cells, on average (0 when the estimate "
         "came from the sample's time or no count model weighs references, so they were not counted)", min=0.0, precision=1)

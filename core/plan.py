@@ -476,6 +476,7 @@ def plan(
     if work is not None:
         refs = "" if work["refs"] is None else f", {work['refs']:.1f} references"
         walked = "" if work.get("steps") is None else (f" ({work['steps']:.1f} traversal steps, "
+                                                       f"{work['candidates']:.1f} candidate triangles, "
                                                        f"{work['tests']:.1f} triangle tests)")
         p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells"
                        f"{refs} per ray{walked}; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")

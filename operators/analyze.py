@@ -107,6 +107,8 @@ def store_results(props, record):
     props.grid_sample_ratio = record["plan"].get("grid_sample_ratio", 1.0)
     work = record["plan"].get("work") or {}
     props.grid_cells_per_ray = work.get("cells", 0.0)
+    props.grid_steps_per_ray = work.get("steps") or 0.0  # None: a grid that does not count its traversal
+    props.grid_candidates_per_ray = work.get("candidates") or 0.0
     props.grid_refs_per_ray = work.get("refs") or 0.0  # None: not counted (no model weighs it)
     for kind in ("bvh", "embree"):
         c = st.get(kind)

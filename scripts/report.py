@@ -518,7 +518,8 @@ def write_markdown(path: Path, R: dict):
     # -- per scene
     w(f"## Break-even per scene ({cal['model']} model, the plan's grid estimate)\n")
     counted = any((s["extra"].get("work") or {}).get("cells") is not None for s in R["scenes"])
-    how = ("t_G est: the grid's count model on the sample's mean cells per ray (cells), what the estimate used; ratio: "
+    how = ("t_G est: the grid's count model (`core.decide.cost.COUNT_TERMS`) on the sample's work counts per ray "
+           "(cells: the 3D-DDA's; steps, candidates: the traversal's own), what the estimate used; ratio: "
            "t_G est / t_G sample" if counted else
            "ratio: the calibration's correction for K; t_G est = sample x ratio, what the estimate used")
     w("Times per ray in µs, builds in ms. t_G sample: the grid's time per ray on the plan's K samples; " + how + ". "
@@ -526,15 +527,15 @@ def write_markdown(path: Path, R: dict):
       "Components: the estimate's own "
       "error on the BVH build, on the BVH time per ray, on the grid's time per ray as estimated, and (for comparison) "
       "the raw sample's (each 100 (est - true) / true).\n")
-    w("| scene | group | N | grid build | t_G | t_G sample | cells | ratio | t_G est | BVH build | t_H | R_C (repeats) | "
-      "R_est [low, high] | error | err build | err t_H | err t_G est | err t_G sample |")
-    w("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    w("| scene | group | N | grid build | t_G | t_G sample | cells | steps, candidates | ratio | t_G est | BVH build | t_H | "
+      "R_C (repeats) | R_est [low, high] | error | err build | err t_H | err t_G est | err t_G sample |")
+    w("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for s in R["scenes"]:
-        m, c = s["measured"]["bvh"], s["components"]
+        m, c, work = s["measured"]["bvh"], s["components"], s["extra"].get("work") or {}
         halves = ", ".join(fbe(x) for x in s["extra"].get("R_C_repeats", {}).get("bvh", []))
         w(f"| {s['name']} | {s['group']} | {fnum(s['triangles'])} | {scaled(s['grid']['build'], 1e3, 1)} | "
           f"{scaled(s['grid']['per_ray'], 1e6, 2)} | {scaled(s['grid_sample_per_ray'], 1e6, 2)} | "
-          f"{fnum((s['extra'].get('work') or {}).get('cells'), 1)} | "
+          f"{fnum(work.get('cells'), 1)} | {fnum(work.get('steps'), 1)}, {fnum(work.get('candidates'), 1)} | "
           f"{fnum((s['extra'].get('grid_sample_ratio') or [None])[0], 2)} | {scaled(s['grid_estimate_per_ray'], 1e6, 2)} | "
           f"{scaled(m['build'], 1e3, 0)} | {scaled(m['per_ray'], 1e6, 2)} | {fbe(s['R_C'])} ({halves}) | "
           f"{fbe(s['R_est'])} [{fbe(s['extra'].get('break_even_low'))}, {fbe(s['extra'].get('break_even_high'))}] | "
@@ -968,6 +969,9 @@ COUNT_VARIANTS = [
     ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None, "linear", "linear"),
     ("sample x ratio", "counts: log2n", None, ("1", "log2n"), "linear", "linear"),
     ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n"), "linear", "linear"),
+    ("counts: steps, candidates", "counts: log2n", ("1", "steps", "candidates"), ("1", "log2n"), "linear", "linear"),
+    ("counts: steps, candidates, tests", "counts: log2n", ("1", "steps", "candidates", "tests"), ("1", "log2n"),
+     "linear", "linear"),
     ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n"), "linear", "linear"),
     ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
     ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs"), "linear", "linear"),

@@ -278,6 +278,43 @@ def test_a_one_count_model_is_stated_at_its_anchor_counts():
         assert f.predict(1 << 12, {"cells": x}) == pytest.approx(f.constants()[f"at cells = {x:g}"], rel=1e-12)
 
 
+def test_the_grid_model_weighs_steps_and_candidates_stated_at_three_points():
+    """The grid's count model is a + b steps + c candidates (COUNT_TERMS): fitted exactly on
+    data that follow it, stated by its times at the three COUNT_ANCHORS points (each equal to
+    the model's prediction there), and its coefficients at the reference (8 steps, 20
+    candidates)."""
+    assert cost.COUNT_TERMS["grid"] == ("1", "steps", "candidates")
+    a, b, c = 3e-7, 4e-8, 1e-8
+    rows = [(1 << n, {"cells": 2 * s, "steps": s, "candidates": q}, a + b * s + c * q)
+            for n, s, q in ((10, 4, 10), (12, 7, 18), (14, 9, 30), (16, 10, 13), (18, 22, 32), (20, 9, 38))]
+    f = cost.fit_counts([SceneRecord(f"s{i}", n, 1000, {"grid": Measurement(0.01, 1000 * t, 1000)}, work=w)
+                         for i, (n, w, t) in enumerate(rows)], ("grid",))["grid"]
+    assert f.terms == ("1", "steps", "candidates") and f.refs == (0.0, 8.0, 20.0)
+    assert f.coefficients() == pytest.approx({"at ref": a + 8 * b + 20 * c, "x steps": b, "x candidates": c}, rel=1e-9)
+    assert f.constants() == pytest.approx({"at steps = 5, candidates = 10": a + 5 * b + 10 * c,
+                                           "at steps = 10, candidates = 13": a + 10 * b + 13 * c,
+                                           "at steps = 10, candidates = 35": a + 10 * b + 35 * c}, rel=1e-9)
+    for point, value in zip(cost.COUNT_ANCHORS[("steps", "candidates")], f.constants().values()):
+        assert f.predict(1 << 12, dict(zip(("steps", "candidates"), point))) == pytest.approx(value, rel=1e-12)
+
+
+def test_records_without_traversal_counts_fit_the_grid_on_cells_and_chosen_terms_never_fall_back():
+    """Records made before the grid counted its traversal (no steps in their work) give the
+    COUNT_FALLBACK model, a + b cells, where the default terms cannot be fitted; terms a
+    caller names are fitted or left out, never swapped; with the counts, the default terms."""
+    def recs(traversal):
+        return [SceneRecord(f"s{n}", n, 1000, {"grid": Measurement(0.01, 1000 * (2e-7 + 3e-8 * c), 1000)},
+                            work={"cells": c, "refs": None, "hit": 0.5, "length": 0.2,
+                                  **({"steps": c / 2, "candidates": c} if traversal else {})})
+                for n, c in ((500, 4), (4000, 9), (30000, 20), (500000, 45))]
+
+    old = cost.fit_counts(recs(False), ("grid",))["grid"]
+    assert old.terms == ("1", "cells")
+    assert old.constants() == pytest.approx({"at cells = 5": 3.5e-7, "at cells = 40": 1.4e-6}, rel=1e-9)
+    assert cost.fit_counts(recs(False), ("grid",), terms_of={"grid": ("1", "steps")}) == {}
+    assert cost.fit_counts(recs(True), ("grid",))["grid"].terms == ("1", "steps", "candidates")
+
+
 def test_count_fit_recovers_exact_coefficients_and_predicts_on_the_terms():
     rows = [(1 << n, {"cells": c, "refs": f, "hit": 0.5, "length": 0.2}, 1e-7 + 2e-8 * c + 5e-9 * f)
             for n, c, f in ((10, 10, 20), (12, 30, 10), (14, 5, 50), (16, 40, 40), (18, 12, 7))]

@@ -50,6 +50,9 @@ def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     work = rec["plan"].get("work")
     assert work is not None, "the shipped calibration holds count models, so the plan estimates from counts"
     assert p.grid_cells_per_ray == pytest.approx(work["cells"], rel=1e-6) and p.grid_cells_per_ray > 0
+    # the counts the shipped grid model weighs: the traversal's steps and candidate triangles
+    assert p.grid_steps_per_ray == pytest.approx(work["steps"], rel=1e-6) and p.grid_steps_per_ray > 0
+    assert p.grid_candidates_per_ray == pytest.approx(work["candidates"], rel=1e-6) and p.grid_candidates_per_ray > 0
     # refs are counted only when a count model weighs them; otherwise the panel hides them
     assert p.grid_refs_per_ray == (0.0 if work["refs"] is None else pytest.approx(work["refs"], rel=1e-6))
     assert rec["summary"]["triangles"] == p.triangle_count

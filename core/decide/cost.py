@@ -560,8 +560,9 @@ def _log_columns(x: np.ndarray, names) -> np.ndarray:
 #: its time per ray at these counts, not at zero counts far outside the data, where it traded
 #: against the slopes (the BVH's 'ns x 1' moved 128.7% between two calibrations in a row).
 #: log2n: an N_REF-triangle scene; cells: 15 cells a ray (1 + cells = 16; the calibration
-#: scenes' median is 14).  A term not named here is stated at 0
-COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0}
+#: scenes' median is 14); steps and candidates: 8 lockstep steps and 20 candidate pairs a
+#: ray (the calibration scenes' medians are 8.6 and 16).  A term not named here is stated at 0
+COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0, "steps": 8.0, "candidates": 20.0}
 
 #: the counts a one-count linear model is stated at (``CountFit.constants``): its time per
 #: ray at two counts the calibration scenes span (their sample rays step through 4.6 to 54
@@ -569,7 +570,23 @@ COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0}
 #: are, but each is measured by the scenes near it, where a slope is the difference of two
 #: noisy ends (two calibrations in a row: the grid's slope 34% apart, its time per ray at
 #: 5 cells 0.8% and at 40 cells 19%)
-COUNT_ANCHORS = {"cells": (5.0, 40.0), "log2n": (10.0, 20.0)}
+#: A linear model of several counts is stated, alike, by its times at as many points of
+#: their space as it has coefficients, keyed by the tuple of its counts: the grid's steps and
+#: candidates at three corners of what the calibration scenes span (4-22 steps, 8-38
+#: candidates a ray): few of both (small scenes), many steps and few candidates (cities,
+#: scatter), many of both (large closed meshes, terrain)
+COUNT_ANCHORS = {"cells": (5.0, 40.0), "log2n": (10.0, 20.0),
+                 ("steps", "candidates"): ((5.0, 10.0), (10.0, 13.0), (10.0, 35.0))}
+
+
+def _anchor_points(slopes: tuple) -> list[dict] | None:
+    """The points ({count: value}) a linear model of the counts ``slopes`` is stated at, or
+    None where COUNT_ANCHORS has none for them."""
+    if len(slopes) == 1 and slopes[0] in COUNT_ANCHORS:
+        return [{slopes[0]: float(x)} for x in COUNT_ANCHORS[slopes[0]]]
+    if len(slopes) > 1 and tuple(slopes) in COUNT_ANCHORS:
+        return [dict(zip(slopes, map(float, p))) for p in COUNT_ANCHORS[tuple(slopes)]]
+    return None
 
 
 @dataclass
@@ -612,17 +629,17 @@ class CountFit:
         return float(sum(c * (t[k] - (0.0 if k == "1" else r)) for k, c, r in zip(self.terms, self.coef, refs)))
 
     def constants(self) -> dict[str, float]:
-        """Each fitted constant by what it means.  A linear model of one count named in
-        ``COUNT_ANCHORS``: its time per ray (s) at the two anchor counts, which are the
-        model; any other: the time per ray at the reference (s) and each term's slope
-        (linear, s a unit) or exponent (log)."""
-        slopes = [k for k in self.terms if k != "1"]
-        if self.form == "linear" and "1" in self.terms and len(slopes) == 1 and slopes[0] in COUNT_ANCHORS:
-            name = slopes[0]
-            c = dict(zip(self.terms, self.coef))
-            r = dict(zip(self.terms, self._refs()))[name]
-            return {f"at {name} = {x:g}": c["1"] + c[name] * (x - r) for x in COUNT_ANCHORS[name]}
-        return self.coefficients()
+        """Each fitted constant by what it means.  A linear model of counts named in
+        ``COUNT_ANCHORS``: its time per ray (s) at the anchor points, one per coefficient,
+        which are the model; any other: the time per ray at the reference (s) and each
+        term's slope (linear, s a unit) or exponent (log)."""
+        slopes = tuple(k for k in self.terms if k != "1")
+        points = _anchor_points(slopes) if self.form == "linear" and "1" in self.terms else None
+        if points is None:
+            return self.coefficients()
+        c, r = dict(zip(self.terms, self.coef)), dict(zip(self.terms, self._refs()))
+        return {"at " + ", ".join(f"{k} = {v:g}" for k, v in p.items()):
+                c["1"] + sum(c[k] * (v - r[k]) for k, v in p.items()) for p in points}
 
     def coefficients(self) -> dict[str, float]:
         """The coefficients as stored: the time per ray at the reference (s) and each
@@ -683,21 +700,32 @@ class CountFit:
         return f
 
 
-#: the terms of each count model (``terms``): the grid's time per ray from the cells its
-#: sample rays step through; the numpy BVH's and Embree's from log2 N alone.  The grid
-#: sample's cells and references in the BVH's model lowered the error on the calibration
-#: scenes but not on held-out meshes, and made two calibrations in a row predict per-ray
-#: times far apart (the nonnegative fit trades log2 N against references); scripts/
+#: the terms of each count model (``terms``): the grid's time per ray from what its traversal
+#: did for the sample rays, lockstep steps and candidate (ray, reference) pairs
+#: (``UniformGrid.traversal_work``); the numpy BVH's and Embree's from log2 N alone.
+#: The grid was a + b cells, the 3D-DDA's cells along each ray; but the grid jumps over empty
+#: space, so on closed meshes it takes a fifth of those steps, while the calibration's soups
+#: and slivers take about one a cell and test 3-5x more triangles: the cells model ran a
+#: median +11% high on report H's 19 held-out meshes (16 above), steps and candidates 4.3%
+#: (+3.8), leave-one-out 12.3% -> 10.2% (scripts/traversal_study.py, BENCHMARKS.md, issue 14).
+#: Adding the kernel's tests lowers leave-one-out further but not the held-out break-evens.
+#: The grid sample's cells and references in the BVH's model lowered the error on the
+#: calibration scenes but not on held-out meshes, and made two calibrations in a row predict
+#: per-ray times far apart (the nonnegative fit trades log2 N against references); scripts/
 #: counts_study.py --analyse / --agree and BENCHMARKS.md (issue 14) have the figures.
 COUNT_TERMS = {
-    "grid": ("1", "cells"),
+    "grid": ("1", "steps", "candidates"),
     "bvh": ("1", "log2n"),
     "embree": ("1", "log2n"),
 }
 
+#: the terms a count model falls back on when the records lack its counts (files made before
+#: the grid counted its traversal): their work has the cells, not the steps
+COUNT_FALLBACK = {"grid": ("1", "cells")}
 
-#: the form of each count model (``CountFit.form``): nonnegative sums, a + b cells for the
-#: grid and a + b log2 N for the structures.  The grid was a power law in (1 + cells) while
+
+#: the form of each count model (``CountFit.form``): nonnegative sums, a + b steps + c
+#: candidates for the grid and a + b log2 N for the structures.  The grid was a power law in (1 + cells) while
 #: calibration timed 131,072-ray batches; with 524,288 (issue 14, third session) the sum
 #: follows the held-out meshes' grid time per ray twice as closely (median 5.7% against
 #: 10.8% on the 19 scenes of docs/report, 10.7% against 18.1% on an earlier report's truths;
@@ -710,14 +738,22 @@ COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "linear"}
 
 def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None, reference=None) -> dict[str, CountFit]:
     """A CountFit per kind ('grid' and the structures) over the records with work counts,
-    its constants stated at ``reference`` (``CountFit.fit``)."""
+    its constants stated at ``reference`` (``CountFit.fit``).  A kind whose default terms
+    (``COUNT_TERMS``, not ``terms_of``) fewer than 3 records can give is fitted on its
+    ``COUNT_FALLBACK`` terms; none at all leaves the kind out."""
+    chosen = set(terms_of or {})
     terms_of = dict(COUNT_TERMS, **(terms_of or {}))
     forms_of = dict(COUNT_FORMS, **(forms_of or {}))
     out = {}
     for k in kinds:
+        if k not in terms_of:
+            continue
         rows = [(r.triangles, r.work, r.kinds[k].per_ray) for r in records if r.work and k in r.kinds]
-        if len(rows) >= 3 and k in terms_of:
-            out[k] = CountFit.fit(rows, terms_of[k], spread, forms_of.get(k, "linear"), reference)
+        for names in (terms_of[k], None if k in chosen else COUNT_FALLBACK.get(k)):
+            have = [row for row in rows if names and all(t in terms(row[0], row[1]) for t in names)]
+            if len(have) >= 3:
+                out[k] = CountFit.fit(have, names, spread, forms_of.get(k, "linear"), reference)
+                break
     return out
 
 
