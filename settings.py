@@ -264,10 +264,12 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         "came from the sample's time instead of its work counts)", min=0.0, precision=1)
     grid_steps_per_ray: FloatProperty(
         name="Steps per Ray", description="Steps the grid's traversal took per sample ray, on average: a jump over "
-        "empty space is one step (0 when the sample's traversal was not counted)", min=0.0, precision=1)
+        "empty space is one step (0 when the sample's traversal was not counted or the grid's count model, an "
+        "older calibration's, weighs cells instead)", min=0.0, precision=1)
     grid_candidates_per_ray: FloatProperty(
         name="Candidates per Ray", description="Triangle references in the cells the traversal stopped in, per "
-        "sample ray, on average (0 when the sample's traversal was not counted)", min=0.0, precision=1)
+        "sample ray, on average (0 when the sample's traversal was not counted or the grid's count model does not "
+        "weigh them)", min=0.0, precision=1)
     grid_refs_per_ray: FloatProperty(
         name="References per Ray", description="Triangle references in those cells, on average (0 when the estimate "
         "came from the sample's time or no count model weighs references, so they were not counted)", min=0.0, precision=1)

@@ -133,6 +133,9 @@ class Plan:
     #: the grid sample's per-ray work counts (``decide.work.Work`` as a dict) when the
     #: calibration's count model made the estimate, else None
     work: dict | None = None
+    #: the counts the grid's count model weighed (its terms but '1', e.g. ('steps',
+    #: 'candidates')) when it made the estimate, else (): which of ``work`` a reader quotes
+    grid_terms: tuple = ()
     #: sample rays that came from the workload and whose answers the plan keeps
     workload_samples: int = 0
     #: the calibration's lower bound on the break-even (0: none); a plan for fewer rays
@@ -178,7 +181,7 @@ class Plan:
             "break_even_high": _json_float(self.break_even_high), "break_even_kind": self.break_even_kind,
             "decision": self.decision, "certain": self.certain, "grid_sample_per_ray": self.grid_sample_per_ray,
             "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
-            "break_even_floor": self.break_even_floor,
+            "grid_terms": list(self.grid_terms), "break_even_floor": self.break_even_floor,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
@@ -474,12 +477,14 @@ def plan(
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work
     if work is not None:
+        p.grid_terms = tuple(t for t in calibration.counts["grid"].terms if t != "1")
         refs = "" if work["refs"] is None else f", {work['refs']:.1f} references"
         walked = "" if work.get("steps") is None else (f" ({work['steps']:.1f} traversal steps, "
                                                        f"{work['candidates']:.1f} candidate triangles, "
                                                        f"{work['tests']:.1f} triangle tests)")
         p.notes.append(f"grid time per ray from the work counts of {k:,} sample rays ({what}): {work['cells']:.1f} cells"
-                       f"{refs} per ray{walked}; " + ", ".join(sorted(per_ray)) + " per ray from the same counts")
+                       f"{refs} per ray{walked}; its count model weighs {', '.join(p.grid_terms)}; "
+                       + ", ".join(sorted(per_ray)) + " per ray from the same counts")
     elif k:
         p.notes.append(f"grid time per ray from {k:,} sample rays ({what}) x {ratio:.2f}, the calibration's "
                        f"large-workload / {k:,}-ray-batch ratio [{ratio_lo:.2f}, {ratio_hi:.2f}]")

@@ -106,9 +106,12 @@ def store_results(props, record):
     props.samples_traced = record["plan"]["samples"]
     props.grid_sample_ratio = record["plan"].get("grid_sample_ratio", 1.0)
     work = record["plan"].get("work") or {}
+    # the counts the grid's model weighed (an older calibration weighs cells, not steps):
+    # the sidebar quotes those, so a count it shows is one the estimate used
+    weighed = set(record["plan"].get("grid_terms") or ())
     props.grid_cells_per_ray = work.get("cells", 0.0)
-    props.grid_steps_per_ray = work.get("steps") or 0.0  # None: a grid that does not count its traversal
-    props.grid_candidates_per_ray = work.get("candidates") or 0.0
+    for name in ("steps", "candidates"):  # None: a grid that does not count its traversal
+        setattr(props, f"grid_{name}_per_ray", (work.get(name) or 0.0) if name in weighed else 0.0)
     props.grid_refs_per_ray = work.get("refs") or 0.0  # None: not counted (no model weighs it)
     for kind in ("bvh", "embree"):
         c = st.get(kind)

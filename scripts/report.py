@@ -492,10 +492,12 @@ def write_markdown(path: Path, R: dict):
           "error against the numpy BVH: " + "; ".join(f"{name} {fnum(v['held_out']['median_abs'], 1, None)} "
                                                       f"({fnum(v['picks']['percent'], 1, None)} correct picks)"
                                                       for name, v in ests.items()) + ".\n")
-    crep = summ.get("calibration_repeatability")
-    if crep:
-        w("Two calibrations in a row, each constant's difference |a - b| / mean in %, as the model states it "
-          "(each build at 1,024 to 1,048,576 triangles, each time per ray at two counts): "
+    for crep in (summ.get("calibration_repeatability"), summ.get("calibration_repeatability_first")):
+        if not crep:
+            continue
+        w(f"Two calibrations in a row{' (' + crep['pair'] + ')' if crep.get('pair') else ''}, each constant's "
+          "difference |a - b| / mean in %, as the model states it "
+          "(each build at 1,024 to 1,048,576 triangles, each time per ray at its model's anchor counts): "
           + ", ".join(f"{k} {fnum(v, 1)}" for k, v in crep["constants"].items())
           + ". The same as the file stores the coefficients (the four build terms trade against each other, "
           "a slope against an intercept): "
@@ -1079,16 +1081,18 @@ def repeat_rows(summ: dict) -> list[dict]:
     return rows
 
 
-def calibration_row(c: dict) -> dict:
-    """The headline row of two calibrations in a row."""
+def calibration_row(c: dict, goal: bool = True) -> dict:
+    """The headline row of two calibrations in a row (``c["pair"]`` says which two); with
+    goal=False a row beside the goal's, judged against nothing."""
     ratio = c["break_even_ratio"]
-    return {"measure": "two calibrations in a row: largest difference of a constant as the model states it (median); "
-                       "of a stored coefficient (median); break-evens they give, max / min, median (max)",
-            "goal": "≤ 10%",
+    which = f" ({c['pair']})" if c.get("pair") else ""
+    return {"measure": f"two calibrations in a row{which}: largest difference of a constant as the model states it "
+                       "(median); of a stored coefficient (median); break-evens they give, max / min, median (max)",
+            "goal": "≤ 10%" if goal else "-",
             "value": f"{fnum(c['max_constant'], 1, None)} ({fnum(c['median_constant'], 1, None)}); "
                      f"{fnum(c['max_coefficient'], 1, None)} ({fnum(c['median_coefficient'], 1, None)}); "
                      f"{fnum(ratio['median'], 3)} ({fnum(ratio['max'], 2)})",
-            "met": "yes" if c["max_constant"] <= 10 else "**no**"}
+            "met": ("yes" if c["max_constant"] <= 10 else "**no**") if goal else "-"}
 
 
 def headline(summ: dict, samples: int) -> list[dict]:
@@ -1141,8 +1145,11 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="tiny procedural scenes, few rays: a smoke run")
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays per evaluated scene for R_C (default 1M)")
     ap.add_argument("--plan-repeats", type=int, default=5, help="plan() runs per scene for the estimate's repeatability")
-    ap.add_argument("--calibrations", type=int, default=2,
-                    help="calibrations in a row whose constants are compared (the first is the one used; default 2)")
+    ap.add_argument("--calibrations", type=int, default=3,
+                    help="calibrations in a row whose constants are compared: the first is the one used (measured "
+                         "with the truths, see --no-joint), the others alone, one after the other; with 3 or more "
+                         "the goal's row compares the last two, and the first against the second is shown beside "
+                         "it (default 3; 1: none)")
     ap.add_argument("--cal-repeats", type=int, default=None,
                     help="passes of the calibration over its scenes (default: core's, as the add-on calibrates)")
     ap.add_argument("--repeats", type=int, default=5,
@@ -1251,10 +1258,22 @@ def main(argv=None):
     models = model_comparison(results, cal)
     summary["count_models"] = {k: count_comparison(cal, k, args.samples) for k in kinds}
     if args.calibrations >= 2:
-        cal2 = calibrate_again(args, cal)
-        notes += [f"the second calibration: {x}" for x in cal2.notes]
-        summary["calibration_repeatability"] = calibration_repeatability(cal, cal2, results)
+        again = []
+        for i in range(args.calibrations - 1):
+            again.append(calibrate_again(args, cal))
+            notes += [f"calibration {i + 2}: {x}" for x in again[-1].notes]
+        first = ("reused from a file" if cal_how.startswith("reused") else
+                 "measured in the same passes as the truths" if "same passes" in cal_how else "measured alone")
+        pairs = [(cal, again[0], f"the report's own calibration, {first}, and the one after it, alone")]
+        if len(again) >= 2:
+            pairs.insert(0, (again[-2], again[-1], f"calibrations {len(again)} and {len(again) + 1} of the report, "
+                                                     f"each alone, one right after the other"))
+        summary["calibration_repeatability"] = dict(calibration_repeatability(*pairs[0][:2], results), pair=pairs[0][2])
         summary["headline"].append(calibration_row(summary["calibration_repeatability"]))
+        if len(pairs) > 1:
+            summary["calibration_repeatability_first"] = dict(calibration_repeatability(*pairs[1][:2], results),
+                                                              pair=pairs[1][2])
+            summary["headline"].append(calibration_row(summary["calibration_repeatability_first"], goal=False))
     best_model, decision = decide_model(models, cal.model, calib.DEFAULT_MODEL)
     sweep = None
     if sweep_rows:

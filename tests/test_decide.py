@@ -457,6 +457,11 @@ def test_a_plan_with_a_count_model_repeats_exactly_and_uses_the_counts():
     assert plans[0].candidates["bvh"].per_ray == pytest.approx(2e-7 + 1e-7 * math.log2(mesh.triangle_count), rel=1e-12)
     assert len({p.break_even for p in plans}) == 1 and len({p.grid_per_ray for p in plans}) == 1
     assert plans[0].to_dict()["work"] == w
+    # the plan names the counts its grid model weighed (the sidebar quotes only those)
+    assert plans[0].grid_terms == ("cells", "refs") and plans[0].to_dict()["grid_terms"] == ["cells", "refs"]
+    assert "its count model weighs cells, refs" in " ".join(plans[0].notes)
+    timed = plan(mesh, 1e6, Calibration(cal.fits, source="hand"), samples=2000, seed=3)
+    assert timed.work is None and timed.grid_terms == ()
 
 
 def test_a_plan_counts_references_only_when_a_count_model_weighs_them():

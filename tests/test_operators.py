@@ -58,6 +58,23 @@ def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     assert rec["summary"]["triangles"] == p.triangle_count
 
 
+def test_sidebar_quotes_only_the_counts_the_grid_model_weighed(fresh, addon):
+    """A calibration made before the grid counted its traversal weighs cells: the sample
+    still counts steps and candidates, but the sidebar must not quote counts the estimate
+    did not use (it falls back to the cells line)."""
+    simple_scene()
+    assert analyze() == {"FINISHED"}
+    p = props()
+    rec = json.loads(p.last_analysis_json)
+    assert rec["plan"]["grid_terms"] and "cells" not in rec["plan"]["grid_terms"], rec["plan"]["grid_terms"]
+    work = rec["plan"]["work"]
+    assert work["steps"] > 0 and work["candidates"] > 0
+    rec["plan"]["grid_terms"] = ["cells"]
+    addon.operators.analyze.store_results(p, rec)
+    assert p.grid_steps_per_ray == 0.0 and p.grid_candidates_per_ray == 0.0
+    assert p.grid_cells_per_ray == pytest.approx(work["cells"], rel=1e-6) and p.grid_cells_per_ray > 0
+
+
 def test_invoke_in_background_runs_synchronously(fresh):
     simple_scene()
     assert bpy.ops.hybrid_raycast.analyze("INVOKE_DEFAULT") == {"FINISHED"}
