@@ -477,7 +477,7 @@ def plan(
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work
     if work is not None:
-        p.grid_terms = tuple(t for t in calibration.counts["grid"].terms if t != "1")
+        p.grid_terms = calibration.counts["grid"].weighed
         refs = "" if work["refs"] is None else f", {work['refs']:.1f} references"
         walked = "" if work.get("steps") is None else (f" ({work['steps']:.1f} traversal steps, "
                                                        f"{work['candidates']:.1f} candidate triangles, "

@@ -1262,18 +1262,16 @@ def main(argv=None):
         for i in range(args.calibrations - 1):
             again.append(calibrate_again(args, cal))
             notes += [f"calibration {i + 2}: {x}" for x in again[-1].notes]
-        first = ("reused from a file" if cal_how.startswith("reused") else
-                 "measured in the same passes as the truths" if "same passes" in cal_how else "measured alone")
-        pairs = [(cal, again[0], f"the report's own calibration, {first}, and the one after it, alone")]
-        if len(again) >= 2:
-            pairs.insert(0, (again[-2], again[-1], f"calibrations {len(again)} and {len(again) + 1} of the report, "
-                                                     f"each alone, one right after the other"))
-        summary["calibration_repeatability"] = dict(calibration_repeatability(*pairs[0][:2], results), pair=pairs[0][2])
-        summary["headline"].append(calibration_row(summary["calibration_repeatability"]))
-        if len(pairs) > 1:
-            summary["calibration_repeatability_first"] = dict(calibration_repeatability(*pairs[1][:2], results),
-                                                              pair=pairs[1][2])
-            summary["headline"].append(calibration_row(summary["calibration_repeatability_first"], goal=False))
+        first = ("measured in the same passes as the truths" if "truths" in joint else
+                 "reused from a file" if cal_how.startswith("reused") else "measured alone")
+        # the goal's pair first: the last two plain calibrations when there are two
+        pairs = ([(again[-2], again[-1], f"calibrations {len(again)} and {len(again) + 1} of the report, "
+                                         f"each alone, one right after the other")] if len(again) >= 2 else [])
+        pairs.append((cal, again[0], f"the report's own calibration, {first}, and the one after it, alone"))
+        for key, (a, b, which), goal in zip(("calibration_repeatability", "calibration_repeatability_first"),
+                                            pairs, (True, False)):
+            summary[key] = dict(calibration_repeatability(a, b, results), pair=which)
+            summary["headline"].append(calibration_row(summary[key], goal=goal))
     best_model, decision = decide_model(models, cal.model, calib.DEFAULT_MODEL)
     sweep = None
     if sweep_rows:

@@ -615,6 +615,11 @@ class CountFit:
     def _refs(self) -> tuple:
         return tuple(self.refs) if self.refs else tuple(0.0 for _ in self.terms)
 
+    @property
+    def weighed(self) -> tuple:
+        """The counts the model weighs: its terms but the constant '1'."""
+        return tuple(k for k in self.terms if k != "1")
+
     def predict(self, triangles: int, work: dict) -> float:
         t = terms(triangles, work)
         missing = [k for k in self.terms if k not in t]
@@ -633,7 +638,7 @@ class CountFit:
         ``COUNT_ANCHORS``: its time per ray (s) at the anchor points, one per coefficient,
         which are the model; any other: the time per ray at the reference (s) and each
         term's slope (linear, s a unit) or exponent (log)."""
-        slopes = tuple(k for k in self.terms if k != "1")
+        slopes = self.weighed
         points = _anchor_points(slopes) if self.form == "linear" and "1" in self.terms else None
         if points is None:
             return self.coefficients()
