@@ -1,0 +1,89 @@
+"""Embree's build after a rest: how a small build's time depends on what the machine did just
+before it (issue 14, sixteenth session).  A timing benchmark: run it alone.
+
+For each mesh and each gap, builds Embree ``--builds`` times, each after the gap spent either
+asleep ('rest', the machine idle, as before a user's Analyze click) or spinning on one thread
+('busy'), and also right after the page warming and ``IDLE_BEFORE_BUILD`` as the calibration
+and the report's truths measure it ('measured').  Prints the median build and the spread
+(max / min - 1) of each row.  Meshes: the real ones of --scenes that exist (homer,
+rocker-arm, stanford-bunny), else procedural ones of the same sizes.
+
+    .venv/bin/python scripts/build_rest_study.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _package import core_package  # noqa: E402
+
+core_package()
+
+from hybrid_raycast.core import scenes as scene_lib  # noqa: E402
+from hybrid_raycast.core.decide import measurements as M  # noqa: E402
+from hybrid_raycast.core.factory import build  # noqa: E402
+from hybrid_raycast.core.objio import load_obj  # noqa: E402
+
+SHARED_SCENES = Path(__file__).resolve().parents[2] / "shared" / "scenes"
+REAL = ("homer", "rocker-arm", "stanford-bunny")
+GAPS_MS = (0.0, 1.0, 5.0, 20.0, 100.0, 500.0)
+
+
+def meshes(folder: Path):
+    out = [(n, load_obj(folder / f"{n}.obj")) for n in REAL if (folder / f"{n}.obj").exists()]
+    return out or [("sphere-12k", scene_lib.sphere(12000)), ("torus-20k", scene_lib.torus(20000)),
+                   ("soup-70k", scene_lib.soup(70000))]
+
+
+def spin(seconds: float) -> None:
+    t = time.perf_counter()
+    while time.perf_counter() - t < seconds:
+        pass
+
+
+def timed_build(mesh) -> float:
+    t = time.perf_counter()
+    build(mesh, "embree", threads=2)
+    return time.perf_counter() - t
+
+
+def measured_build(mesh) -> float:
+    """As ``measurements._measure`` times a build: page warming, the rest, the build."""
+    M.warm_pages(M.warm_bytes(mesh.triangle_count))
+    time.sleep(M.IDLE_BEFORE_BUILD)
+    return timed_build(mesh)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default=str(SHARED_SCENES), help="folder of real .obj meshes")
+    ap.add_argument("--builds", type=int, default=11, help="builds per row (default 11)")
+    args = ap.parse_args(argv)
+    if M.unavailable_reason("embree"):
+        raise SystemExit(f"embree: {M.unavailable_reason('embree')}")
+    print("| mesh | N | before the build | gap ms | build ms, median | spread |\n|---|---:|---|---:|---:|---:|")
+    for name, mesh in meshes(Path(args.scenes)):
+        mesh.valid  # noqa: B018 -- computed once, outside every timed build
+        timed_build(mesh)
+        rows = [(how, gap) for gap in GAPS_MS for how in ("rest", "busy")] + [("measured", M.IDLE_BEFORE_BUILD * 1e3)]
+        for how, gap in rows:
+            got = []
+            for _ in range(max(1, args.builds)):
+                if how == "measured":
+                    got.append(measured_build(mesh))
+                    continue
+                (time.sleep if how == "rest" else spin)(gap / 1e3)
+                got.append(timed_build(mesh))
+            print(f"| {name} | {mesh.triangle_count:,} | {how} | {gap:g} | {np.median(got) * 1e3:.2f} | "
+                  f"{100 * (max(got) / min(got) - 1):.0f}% |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
