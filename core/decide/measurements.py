@@ -108,17 +108,13 @@ def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurem
     return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads), faults, system), accel
 
 
-#: seconds the process rests between the page warming and each timed build, so every build
-#: starts as a user's does, with the machine idle (an Analyze click, a script's first
-#: ``api.cast``), never in the fast state right after other work.  Embree builds over all
-#: hardware threads, and on this 2-core VM its build of a 12k-triangle mesh (homer) took
-#: 1.8 ms when it came within 5 ms of the previous build and 3.2-3.4 ms after 20-500 ms of
-#: rest; with some work between builds, 2.1-3.1 ms depending on what that was (issue 14,
-#: sixteenth session).  The calibration and the truths met both states at random (a
-#: 20k-triangle scene's Embree build 3.0 ms on terrain, 5.0 ms on the sphere; the truth of
-#: rocker-arm 3.9 ms in one report, 5.7 ms in the next), which put the Embree build
-#: estimate 25-40% low on 12k-70k-triangle meshes.  50 ms rests about 9 s over a default
-#: calibration; the memory freed by the warming is not handed back to the host that soon
+#: seconds the process rests between the page warming and each timed build, so that every
+#: build starts as a user's does (after an Analyze click, a script's first ``api.cast``),
+#: never in the fast state of a build that follows other work within a few ms.  Embree
+#: builds over all hardware threads, and its small builds ran 1.7-2x faster back to back
+#: than after a rest; the calibration and the truths met both states at random (BENCHMARKS.md,
+#: "Embree's small builds after a rest"; scripts/build_rest_study.py).  Well below the
+#: seconds after which the VM's host takes freed memory back, so the warming still holds.
 IDLE_BEFORE_BUILD = 0.05
 
 #: memory written just before each timed build (``warm_pages``), per triangle and at least /
