@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _package import core_package  # noqa: E402
+from _package import SHARED_SCENES, core_package  # noqa: E402
 
 core_package()
 
@@ -30,7 +30,6 @@ from hybrid_raycast.core.decide import measurements as M  # noqa: E402
 from hybrid_raycast.core.factory import build  # noqa: E402
 from hybrid_raycast.core.objio import load_obj  # noqa: E402
 
-SHARED_SCENES = Path(__file__).resolve().parents[2] / "shared" / "scenes"
 REAL = ("homer", "rocker-arm", "stanford-bunny")
 GAPS_MS = (0.0, 1.0, 5.0, 20.0, 100.0, 500.0)
 
@@ -54,9 +53,8 @@ def timed_build(mesh) -> float:
 
 
 def measured_build(mesh) -> float:
-    """As ``measurements._measure`` times a build: page warming, the rest, the build."""
-    M.warm_pages(M.warm_bytes(mesh.triangle_count))
-    time.sleep(M.IDLE_BEFORE_BUILD)
+    """After what ``measurements._measure`` does before a build (``settle_before_build``)."""
+    M.settle_before_build(mesh.triangle_count)
     return timed_build(mesh)
 
 

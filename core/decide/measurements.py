@@ -98,8 +98,7 @@ def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurem
     cfg = dict(config or {})
     if threads is not None:
         cfg.setdefault("threads", threads)
-    warm_pages(warm_bytes(mesh.triangle_count))
-    time.sleep(IDLE_BEFORE_BUILD)
+    settle_before_build(mesh.triangle_count)
     k0 = _kernel_usage()
     accel = build(mesh, kind, **cfg)
     k1 = _kernel_usage()
@@ -116,6 +115,14 @@ def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurem
 #: "Embree's small builds after a rest"; scripts/build_rest_study.py).  Well below the
 #: seconds after which the VM's host takes freed memory back, so the warming still holds.
 IDLE_BEFORE_BUILD = 0.05
+
+
+def settle_before_build(triangles: int) -> None:
+    """What comes right before every timed build: the scene's share of memory written
+    (``warm_pages``), then the rest (``IDLE_BEFORE_BUILD``)."""
+    warm_pages(warm_bytes(triangles))
+    time.sleep(IDLE_BEFORE_BUILD)
+
 
 #: memory written just before each timed build (``warm_pages``), per triangle and at least /
 #: at most: above the largest build's fresh pages (the numpy BVH's peak is ~310 bytes a
