@@ -11,6 +11,8 @@ import types
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the real meshes for evaluation and benchmarks, beside the repository (never copied into it)
+SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 
 
 def core_package(name: str = "hybrid_raycast"):

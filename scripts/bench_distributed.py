@@ -44,14 +44,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _package import ROOT, core_package, importable_by_workers  # noqa: E402
+from _package import SHARED_SCENES, core_package, importable_by_workers  # noqa: E402
 
 core_package()
 from hybrid_raycast import core  # noqa: E402
 from hybrid_raycast.core import distributed as hd  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
-SCENES = ROOT.parent / "shared" / "scenes"
 
 
 def count(text: str) -> int:
@@ -59,7 +58,7 @@ def count(text: str) -> int:
 
 
 def load_scene(name: str, levels: int) -> core.TriangleMesh:
-    mesh = core.load_obj(SCENES / f"{name}.obj")
+    mesh = core.load_obj(SHARED_SCENES / f"{name}.obj")
     polygons = mesh.polygon_index if mesh.polygon_index is not None else np.arange(mesh.triangle_count, dtype=np.int32)
     for _ in range(levels):  # subdivide() puts the 4 children of triangle i at i, i+T, i+2T, i+3T
         mesh = core.scenes.subdivide(mesh)
@@ -155,8 +154,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    if not SCENES.is_dir():
-        print(f"real meshes not found at {SCENES}", file=sys.stderr)
+    if not SHARED_SCENES.is_dir():
+        print(f"real meshes not found at {SHARED_SCENES}", file=sys.stderr)
         return 2
     importable_by_workers()
 

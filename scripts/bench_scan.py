@@ -34,18 +34,17 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
-from _package import load_addon  # noqa: E402
+from _package import SHARED_SCENES, load_addon  # noqa: E402
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
-SCENES = ROOT.parent / "shared" / "scenes"
 STATIC = (("stanford-bunny", (8.0, 4.0)), ("homer", (-9.0, 6.0)), ("teapot", (5.0, -9.0)), ("rocker-arm", (-7.0, -7.0)))
 MOVING = (("beetle-alt", (-15.0, 3.0), (15.0, 3.0)), ("cow", (10.0, -14.0), (-10.0, -2.0)), ("spot", (-3.0, 14.0), (9.0, -12.0)))
 
 
 def mesh_object(pkg, name, size=3.0):
-    m = pkg.core.load_obj(SCENES / f"{name}.obj")
+    m = pkg.core.load_obj(SHARED_SCENES / f"{name}.obj")
     v = m.vertices.astype(np.float64)
     lo, hi = v.min(0), v.max(0)
     v = (v - (lo + hi) / 2) * (size / (hi - lo).max())
@@ -104,8 +103,8 @@ def main(argv=None):
     ap.add_argument("--loop-frames", type=int, default=3)
     ap.add_argument("--static", action="store_true", help="the meshes stand still; only the sensor (an Empty) moves")
     args = ap.parse_args(argv)
-    if not SCENES.is_dir():
-        print(f"needs the meshes in {SCENES}", file=sys.stderr)
+    if not SHARED_SCENES.is_dir():
+        print(f"needs the meshes in {SHARED_SCENES}", file=sys.stderr)
         return 2
     pkg = load_addon()
     pkg.register()

@@ -17,7 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _package import core_package  # noqa: E402
+from _package import ROOT, SHARED_SCENES, core_package  # noqa: E402
 
 core_package()
 
@@ -30,8 +30,6 @@ from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
 from hybrid_raycast.core.decide import available_kinds, measure_break_even, time_trace  # noqa: E402
 from hybrid_raycast.core.decide.work import grid_work  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 #: calibration scenes left out of every fit (``--drop``): to compare calibration sets
@@ -263,14 +261,13 @@ def evaluate(path, k_samples=16384, plans=5):
 
 def scene_list(scale="default", subdivide="teapot:2,stanford-bunny:1,beetle-alt:2,fandisk:3"):
     todo = [(n, "calibration", f) for n, f in scene_lib.calibration_set(scale)]
-    folder = ROOT.parent / "shared" / "scenes"
-    for p in sorted(folder.glob("*.obj")):
+    for p in sorted(SHARED_SCENES.glob("*.obj")):
         todo.append((p.stem, "real", (lambda p=p: load_obj(p))))
     for spec in filter(None, subdivide.split(",")):
         stem, lv = spec.split(":")
 
         def make(stem=stem, lv=int(lv)):
-            m = load_obj(folder / f"{stem}.obj")
+            m = load_obj(SHARED_SCENES / f"{stem}.obj")
             for _ in range(lv):
                 m = scene_lib.subdivide(m)
             return m

@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _package import core_package  # noqa: E402
+from _package import ROOT, SHARED_SCENES, core_package  # noqa: E402
 
 core_package()
 
@@ -65,8 +65,6 @@ from hybrid_raycast.core.decide.measurements import CALIBRATION_REPEATS  # noqa:
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 
 #: larger versions of the real meshes: (mesh, subdivision levels); each level is 4x the triangles
 SUBDIVIDED = [("teapot", 2), ("beetle-alt", 1), ("stanford-bunny", 1), ("rocker-arm", 2), ("beetle-alt", 2),
