@@ -5,7 +5,10 @@ For each mesh and each gap, builds Embree ``--builds`` times, each after the gap
 asleep ('rest', the machine idle, as before a user's Analyze click) or spinning on one thread
 ('busy'), and also right after the page warming and ``IDLE_BEFORE_BUILD`` as the calibration
 and the report's truths measure it ('measured').  Prints the median build and the spread
-(max / min - 1) of each row.  Meshes: the real ones of --scenes that exist (homer,
+(max / min - 1) of each row, and how many threads the builds kept busy: the median of each
+build's process CPU seconds over its wall seconds, and the share of builds below
+``ONE_THREAD`` (Embree builds on every hardware thread; on a VM that has parked its idle vCPU
+the second thread can land on the first's vCPU, and the build runs on about one).  Meshes: the real ones of --scenes that exist (homer,
 rocker-arm, stanford-bunny), else procedural ones of the same sizes.
 
     .venv/bin/python scripts/build_rest_study.py
@@ -31,6 +34,7 @@ from hybrid_raycast.core.factory import build  # noqa: E402
 from hybrid_raycast.core.objio import load_obj  # noqa: E402
 
 REAL = ("homer", "rocker-arm", "stanford-bunny")
+ONE_THREAD = M.ONE_THREAD
 GAPS_MS = (0.0, 1.0, 5.0, 20.0, 100.0, 500.0)
 
 
@@ -46,13 +50,16 @@ def spin(seconds: float) -> None:
         pass
 
 
-def timed_build(mesh) -> float:
-    t = time.perf_counter()
+def timed_build(mesh) -> tuple[float, float]:
+    """(wall seconds, process CPU seconds) of one Embree build (CPU NaN where the OS does not
+    say)."""
+    c, t = M._kernel_usage(), time.perf_counter()
     build(mesh, "embree", threads=2)
-    return time.perf_counter() - t
+    w, c1 = time.perf_counter() - t, M._kernel_usage()
+    return w, (c1[2] - c[2]) if c is not None else float("nan")
 
 
-def measured_build(mesh) -> float:
+def measured_build(mesh) -> tuple[float, float]:
     """After what ``measurements._measure`` does before a build (``settle_before_build``)."""
     M.settle_before_build(mesh.triangle_count)
     return timed_build(mesh)
@@ -65,7 +72,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if M.unavailable_reason("embree"):
         raise SystemExit(f"embree: {M.unavailable_reason('embree')}")
-    print("| mesh | N | before the build | gap ms | build ms, median | spread |\n|---|---:|---|---:|---:|---:|")
+    print("| mesh | N | before the build | gap ms | build ms, median | spread | threads busy, median | "
+          f"builds on about one (< {ONE_THREAD:g}) |\n|---|---:|---|---:|---:|---:|---:|---:|")
     for name, mesh in meshes(Path(args.scenes)):
         mesh.valid  # noqa: B018 -- computed once, outside every timed build
         timed_build(mesh)
@@ -78,8 +86,11 @@ def main(argv=None) -> int:
                     continue
                 (time.sleep if how == "rest" else spin)(gap / 1e3)
                 got.append(timed_build(mesh))
-            print(f"| {name} | {mesh.triangle_count:,} | {how} | {gap:g} | {np.median(got) * 1e3:.2f} | "
-                  f"{100 * (max(got) / min(got) - 1):.0f}% |")
+            wall = np.array([w for w, _ in got])
+            busy = np.array([c / w for w, c in got])
+            print(f"| {name} | {mesh.triangle_count:,} | {how} | {gap:g} | {np.median(wall) * 1e3:.2f} | "
+                  f"{100 * (wall.max() / wall.min() - 1):.0f}% | {np.median(busy):.2f} | "
+                  f"{int((busy < ONE_THREAD).sum())}/{len(busy)} |")
     return 0
 
 

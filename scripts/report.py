@@ -61,7 +61,7 @@ from hybrid_raycast.core.decide import (  # noqa: E402
     CALIBRATION_FORMAT, MODELS, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate,
     break_even_jobs, load, measure_break_evens, time_trace, warm_up,
 )
-from hybrid_raycast.core.decide.measurements import CALIBRATION_REPEATS  # noqa: E402
+from hybrid_raycast.core.decide.measurements import CALIBRATION_REPEATS, ONE_THREAD  # noqa: E402
 from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
@@ -200,6 +200,7 @@ def measure_scene(name, group, mesh, cal, args, kinds, be=None):
                "reuse_plan": {"workload_samples": pw.workload_samples, "break_even": pw.candidates["bvh"].break_even,
                               "grid_per_ray": pw.grid_per_ray, "estimate_time": pw.estimate_time},
                "threads": {"grid": grid.threads, **{k: a.threads for k, a in structs.items()}},
+               "build_parallelism": {k: [m.build_parallelism for m in be.runs[k]] for k in kinds},
                "measurement_notes": be.notes},
     )
     return s, (o, d), grid, structs
@@ -608,10 +609,22 @@ def write_markdown(path: Path, R: dict):
           f"{fnum(stat(esp, 'hybrid_over_oracle'), 3)} (90th percentile {fnum(stat(esp, 'hybrid_over_oracle', 'p90'), 3)}), "
           f"(ii) {fnum(stat(esp, 'hybrid_reuse_over_oracle'), 3)} (Embree retraces the sample rays); always-Embree / "
           f"hybrid (i) median {fnum(stat(esp, 'speedup_vs_embree'), 3)}.\n")
-        w("| scene | N | Embree build ms | t_E µs | R_C(Embree) | R_est(Embree) | error |\n|---|---:|---:|---:|---:|---:|---:|")
+        par, cpar = em.get("parallelism"), em.get("calibration_parallelism")
+        if par and par["builds"]:
+            w(f"Embree builds on every hardware thread. Its truths' builds kept a median of {fnum(par['median'], 2)} "
+              f"threads busy (CPU seconds per second of build, `Measurement.build_parallelism`), and "
+              f"{fnum(100 * par['one_thread_share'], 0)}% of the {par['builds']} builds about one (below {ONE_THREAD:g})"
+              + (f"; the calibration's, {fnum(cpar['median'], 2)} and {fnum(100 * cpar['one_thread_share'], 0)}% of "
+                 f"{cpar['builds']} scenes" if cpar and cpar["builds"] else "")
+              + ". A build on one thread takes about 1.5-1.9x as long (BENCHMARKS.md, \"Embree's builds on one "
+                "thread or two\").\n")
+        w("| scene | N | Embree build ms | estimated | build error | threads busy per pass | t_E µs | R_C(Embree) | "
+          "R_est(Embree) | error |\n|---|---:|---:|---:|---:|---|---:|---:|---:|---:|")
         for r in em["scenes"]:
-            w(f"| {r['name']} | {fnum(r['triangles'])} | {scaled(r['build'], 1e3, 1)} | {scaled(r['per_ray'], 1e6, 3)} | "
-              f"{fbe(r['R_C'])} | {fbe(r['R_est'])} | {fnum(r['error'], 0, True)} |")
+            busy = ", ".join(fnum(x, 1) for x in r.get("parallelism") or []) or "-"
+            w(f"| {r['name']} | {fnum(r['triangles'])} | {scaled(r['build'], 1e3, 1)} | "
+              f"{scaled(r.get('build_est', math.nan), 1e3, 1)} | {fnum(r.get('build_error', math.nan), 0, True)} | {busy} | "
+              f"{scaled(r['per_ray'], 1e6, 3)} | {fbe(r['R_C'])} | {fbe(r['R_est'])} | {fnum(r['error'], 0, True)} |")
         w("")
     # -- sweep
     sw = R.get("sweep")
@@ -1047,12 +1060,25 @@ def summarise(scenes, kinds, samples: int):
         for s in scenes:
             rc = rep.true_break_even(s, "embree")
             re_ = rep.estimated_break_even(s, "embree")
+            par = [x for x in s.extra.get("build_parallelism", {}).get("embree", []) if x is not None]
             em.append({"name": s.name, "triangles": s.triangles, "build": s.measured["embree"].build,
-                       "per_ray": s.measured["embree"].per_ray, "R_C": rc, "R_est": re_, "error": rep.relative_error(re_, rc)})
+                       "build_est": s.estimated["embree"].build,
+                       "build_error": rep.relative_error(s.estimated["embree"].build, s.measured["embree"].build),
+                       "per_ray": s.measured["embree"].per_ray, "R_C": rc, "R_est": re_, "error": rep.relative_error(re_, rc),
+                       "parallelism": par})
         out["embree"] = {"scenes": em, "errors": rep.error_summary([x["error"] for x in em]),
-                         "speedups": rep.speedup_summary(scenes, rep.RAY_COUNTS, ("bvh", "embree"))}
+                         "speedups": rep.speedup_summary(scenes, rep.RAY_COUNTS, ("bvh", "embree")),
+                         "parallelism": parallelism_summary([x for r in em for x in r["parallelism"]])}
     out["headline"] = headline(out, samples)
     return out
+
+
+def parallelism_summary(values) -> dict:
+    """Builds' CPU seconds per second (``Measurement.build_parallelism``): their median, how
+    many there are and the share that kept about one thread busy (below ONE_THREAD)."""
+    v = [float(x) for x in values if x is not None and math.isfinite(x)]
+    return {"builds": len(v), "median": float(np.median(v)) if v else math.nan,
+            "one_thread_share": sum(x < ONE_THREAD for x in v) / len(v) if v else math.nan}
 
 
 def scene_rows(scenes) -> list[dict]:
@@ -1253,6 +1279,10 @@ def main(argv=None):
         del mesh, rays, grid, structs
 
     summary = summarise(results, kinds, args.samples)
+    if summary.get("embree"):
+        # the calibration's Embree builds (the median build of each scene over its median CPU time)
+        summary["embree"]["calibration_parallelism"] = parallelism_summary(
+            [r.kinds["embree"].build_parallelism for r in cal.scenes if "embree" in r.kinds])
     models = model_comparison(results, cal)
     summary["count_models"] = {k: count_comparison(cal, k, args.samples) for k in kinds}
     if args.calibrations >= 2:

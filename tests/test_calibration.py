@@ -525,32 +525,48 @@ def test_calibrate_runs_the_jobs_beside_it_in_its_own_passes_and_hands_back_thei
 
 # -- the kernel's part of a build -----------------------------------------------------------------
 
-def test_a_measured_build_records_its_page_faults_and_system_time(tmp_path):
+def test_a_measured_build_records_its_page_faults_system_time_and_cpu_time(tmp_path):
     resource = pytest.importorskip("resource", reason="getrusage is POSIX only; elsewhere the fields stay None")
     mesh = S.terrain(20000)
     o, d = uniform_rays(mesh, 1000, seed=0)
-    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
     m = M.measure(mesh, "bvh", o, d, threads=1)
-    f1 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    assert isinstance(m.build_faults, int) and 0 <= m.build_faults <= f1 - f0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    assert isinstance(m.build_faults, int) and 0 <= m.build_faults <= r1.ru_minflt - r0.ru_minflt
     assert isinstance(m.build_system, float) and 0.0 <= m.build_system <= m.build_time + 0.05
+    # the build's CPU time: at least its system part, at most what the whole measure() took
+    spent = (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime)
+    assert isinstance(m.build_cpu, float) and m.build_system <= m.build_cpu <= spent
+    # the numpy BVH builds on one thread: its CPU time is about its wall time (getrusage
+    # counts in ticks, so a 10 ms build may read a tick either way)
+    assert m.build_parallelism == pytest.approx(1.0, abs=0.5)
     # the calibration file keeps them; a file without them (older) loads as None
     rec = SceneRecord("t", mesh.triangle_count, 1000, {"bvh": m, "grid": Measurement(0.005, 0.03, 1000)})
     cal = Calibration({"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}, scenes=[rec], source="hand",
                       created="2026-01-01T00:00:00+00:00")
     back = load(cal.save(tmp_path / "cal.json")).scenes[0].kinds
-    assert (back["bvh"].build_faults, back["bvh"].build_system) == (m.build_faults, m.build_system)
-    assert back["grid"].build_faults is None and back["grid"].build_system is None
+    assert (back["bvh"].build_faults, back["bvh"].build_system, back["bvh"].build_cpu) == (
+        m.build_faults, m.build_system, m.build_cpu)
+    assert back["grid"].build_faults is None and back["grid"].build_system is None and back["grid"].build_cpu is None
+    assert back["grid"].build_parallelism is None
 
 
 def test_median_measurement_takes_the_kernel_figures_only_when_every_run_has_them():
-    runs = [Measurement(0.3, 1.0, 10, 2, 100, 0.01), Measurement(0.1, 3.0, 10, 2, 301, 0.03),
-            Measurement(0.2, 2.0, 10, 2, 200, 0.02)]
+    runs = [Measurement(0.3, 1.0, 10, 2, 100, 0.01, 0.5), Measurement(0.1, 3.0, 10, 2, 301, 0.03, 0.1),
+            Measurement(0.2, 2.0, 10, 2, 200, 0.02, 0.38)]
     m = M.median_measurement(runs)
-    assert (m.build_time, m.trace_time, m.build_faults, m.build_system) == (0.2, 2.0, 200, 0.02)
+    assert (m.build_time, m.trace_time, m.build_faults, m.build_system, m.build_cpu) == (0.2, 2.0, 200, 0.02, 0.38)
+    assert m.build_parallelism == pytest.approx(1.9, rel=1e-12)
     m = M.median_measurement(runs + [Measurement(0.25, 2.5, 10, 2)])
     assert (m.build_time, m.trace_time) == pytest.approx((0.225, 2.25), rel=1e-12)
-    assert (m.build_faults, m.build_system) == (None, None)
+    assert (m.build_faults, m.build_system, m.build_cpu, m.build_parallelism) == (None, None, None, None)
+
+
+def test_build_parallelism_is_cpu_seconds_per_second_of_build_and_none_without_either():
+    assert Measurement(0.02, 1.0, 10, 2, build_cpu=0.038).build_parallelism == pytest.approx(1.9, rel=1e-12)
+    assert Measurement(0.02, 1.0, 10, 2, build_cpu=0.02).build_parallelism == pytest.approx(1.0, rel=1e-12)
+    assert Measurement(0.0, 1.0, 10, 2, build_cpu=0.0).build_parallelism is None
+    assert Measurement(0.02, 1.0, 10, 2).build_parallelism is None
 
 
 def test_each_measured_build_comes_right_after_its_scenes_memory_is_written_and_a_rest(monkeypatch):

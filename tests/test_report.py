@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -360,12 +361,31 @@ def test_quick_report_writes_well_formed_json_markdown_and_plots(tmp_path):
                   "## The grid's small-batch ratio", "## Refinements"):
         assert title in md, f"report.md lacks the section {title!r}"
     assert "not in `core.plan` yet" not in md and "proposed refinement" not in md
+    if "embree" in data["meta"]["kinds"]:
+        em = data["summary"]["embree"]
+        for r, s in zip(em["scenes"], data["scenes"]):
+            # one figure per pass, each the build's CPU seconds over its wall seconds
+            assert len(r["parallelism"]) == len(s["extra"]["R_C_repeats"]["embree"]), r["name"]
+            assert all(0.0 <= x < 2.0 * os.cpu_count() + 1 for x in r["parallelism"]), r["name"]
+            assert r["build_error"] == pytest.approx(100 * (r["build_est"] / r["build"] - 1), rel=1e-9)
+        assert em["parallelism"]["builds"] == sum(len(r["parallelism"]) for r in em["scenes"])
+        assert 0.0 <= em["parallelism"]["one_thread_share"] <= 1.0
+        assert em["calibration_parallelism"]["builds"] > 0, "a fresh calibration records its builds' CPU time"
+        assert "threads busy per pass" in md and "## With Embree as a third candidate" in md
     if importlib.util.find_spec("matplotlib") is not None:
         for p in ("errors.png", "totals.png", "speed_vs_error.png"):
             assert (out / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", f"{p} is not a PNG"
             assert f"]({p})" in md, f"report.md does not show {p}"
     else:
         assert "no plots" in md
+
+
+def test_parallelism_summary_counts_the_builds_that_kept_about_one_thread_busy():
+    R = report_script()
+    got = R.parallelism_summary([1.0, 1.05, 1.9, 1.29, None, math.nan, 1.8])
+    assert got == {"builds": 5, "median": pytest.approx(1.29), "one_thread_share": pytest.approx(3 / 5)}
+    empty = R.parallelism_summary([None])
+    assert empty["builds"] == 0 and math.isnan(empty["median"]) and math.isnan(empty["one_thread_share"])
 
 
 def test_large_builds_list_both_calibrations_builds_with_their_page_faults():

@@ -70,7 +70,10 @@ class Measurement:
 
     build_faults, build_system: the page faults the process took during the build and its
     system CPU seconds then (None where the OS does not say, and in older files): the
-    kernel's part of a build's time, which moves with the machine's state."""
+    kernel's part of a build's time, which moves with the machine's state.
+    build_cpu: the process's CPU seconds during the build, user and system, all its threads
+    (None as above): over build_time, how many threads the build kept busy
+    (``build_parallelism``)."""
 
     build_time: float
     trace_time: float
@@ -78,10 +81,19 @@ class Measurement:
     threads: int = 1
     build_faults: int | None = None
     build_system: float | None = None
+    build_cpu: float | None = None
 
     @property
     def per_ray(self) -> float:
         return self.trace_time / max(self.rays, 1)
+
+    @property
+    def build_parallelism(self) -> float | None:
+        """CPU seconds per second of the build (1.0: one thread busy throughout; 2.0: two),
+        None where the CPU time was not measured or the build took no time."""
+        if self.build_cpu is None or not self.build_time > 0:
+            return None
+        return self.build_cpu / self.build_time
 
 
 @dataclass

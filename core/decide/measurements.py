@@ -103,8 +103,9 @@ def _measure(mesh, kind, origins, directions, threads, config) -> tuple[Measurem
     accel = build(mesh, kind, **cfg)
     k1 = _kernel_usage()
     _, dt = time_trace(accel, origins, directions)
-    faults, system = (None, None) if k0 is None else (k1[0] - k0[0], k1[1] - k0[1])
-    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads), faults, system), accel
+    faults, system, cpu = (None, None, None) if k0 is None else (k1[0] - k0[0], k1[1] - k0[1], k1[2] - k0[2])
+    return Measurement(float(accel.build_time), float(dt), int(len(origins)), int(accel.threads), faults, system,
+                       cpu), accel
 
 
 #: seconds the process rests between the page warming and each timed build, so that every
@@ -171,15 +172,22 @@ def warm_pages(nbytes: int) -> None:
     del a
 
 
-def _kernel_usage() -> tuple[int, float] | None:
-    """(minor page faults, system CPU seconds) of this process so far, all its threads
-    (None where there is no ``resource`` module: Windows)."""
+#: a build whose CPU seconds over its wall seconds (``Measurement.build_parallelism``) are
+#: below this kept about one thread busy.  Embree builds on every hardware thread; on this
+#: project's 2-vCPU VM a build after a rest ran on about one (1.0-1.2) or on two (1.8-1.9),
+#: and little in between (BENCHMARKS.md, "Embree's builds on one thread or two")
+ONE_THREAD = 1.3
+
+
+def _kernel_usage() -> tuple[int, float, float] | None:
+    """(minor page faults, system CPU seconds, user + system CPU seconds) of this process so
+    far, all its threads (None where there is no ``resource`` module: Windows)."""
     try:
         import resource
     except ImportError:
         return None
     r = resource.getrusage(resource.RUSAGE_SELF)
-    return int(r.ru_minflt), float(r.ru_stime)
+    return int(r.ru_minflt), float(r.ru_stime), float(r.ru_utime + r.ru_stime)
 
 
 def unavailable_reason(kind: str) -> str | None:
@@ -507,14 +515,14 @@ def quiet_notes(shares, quiet: float | None) -> list[str]:
 
 
 def median_measurement(runs) -> Measurement:
-    """Median build time, trace time and build page faults and system time (where every
-    run has them) of repeated Measurements of one structure."""
+    """Median build time, trace time and build page faults, system time and CPU time (each
+    where every run has it) of repeated Measurements of one structure."""
     def med(name, cast=float):
         v = [getattr(m, name) for m in runs]
         return None if any(x is None for x in v) else cast(np.median(v))
 
     return Measurement(med("build_time"), med("trace_time"), runs[0].rays, runs[0].threads,
-                       med("build_faults", lambda x: int(round(x))), med("build_system"))
+                       med("build_faults", lambda x: int(round(x))), med("build_system"), med("build_cpu"))
 
 
 def _size_hint(factory) -> float:
