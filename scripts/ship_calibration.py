@@ -1,6 +1,7 @@
 """Re-measure the calibration shipped with the package (core/default_calibration.json).
 
     .venv/bin/python scripts/ship_calibration.py [--model affine|paper] [--scale default]
+    .venv/bin/python scripts/ship_calibration.py --refit    # no timing: the file's own records
 
 Run on a quiet machine: the file is what every user without their own calibration gets
 (labelled 'shipped defaults').  Prints the constants and the grid's sample ratios.
@@ -24,7 +25,23 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default=C.DEFAULT_MODEL, choices=sorted(C.MODELS))
     ap.add_argument("--scale", default="default", choices=sorted(C.RAYS_PER_SCENE))
     ap.add_argument("--output", type=Path, default=C.DEFAULT_PATH)
+    ap.add_argument("--refit", action="store_true",
+                    help="fit the shipped file's own records again with the current models and count models "
+                         "(Calibration.refitted), measuring nothing: for a change of model, not of machine")
     args = ap.parse_args(argv)
+    if args.refit:
+        old = C.load(C.DEFAULT_PATH, check_version=False)
+        cal = old.refitted(args.model)
+        changed = sorted(k for k in set(old.counts) | set(cal.counts)
+                         if (old.counts.get(k) and old.counts[k].formula()) != (cal.counts.get(k) and cal.counts[k].formula()))
+        cal.notes = list(cal.notes) + [f"refitted without new timing ({', '.join(changed) or 'no'} count model changed)"]
+        cal.save(args.output)
+        for k in changed:
+            print(f"  {k}: {old.counts[k].formula() if k in old.counts else '-'}  ->  "
+                  f"{cal.counts[k].formula() if k in cal.counts else '-'}")
+        print(cal.describe())
+        print(f"wrote {args.output} (refitted, measured {cal.created})")
+        return 0
 
     def progress(f, msg):
         print(f"[{f * 100:5.1f}%] {msg}", flush=True)

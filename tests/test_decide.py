@@ -298,6 +298,48 @@ def test_the_grid_model_weighs_steps_and_candidates_stated_at_three_points():
         assert f.predict(1 << 12, dict(zip(("steps", "candidates"), point))) == pytest.approx(value, rel=1e-12)
 
 
+def test_hit_above_16k_is_the_hit_fraction_times_the_levels_beyond_a_16k_triangle_scene():
+    w = {"cells": 10.0, "refs": None, "hit": 0.5, "length": 0.2}
+    assert cost.L_CACHED == 14.0
+    assert cost.terms(1 << 20, w)["hit_above_16k"] == pytest.approx(0.5 * 6, rel=1e-12)
+    assert cost.terms(3 << 14, w)["hit_above_16k"] == pytest.approx(0.5 * math.log2(3), rel=1e-12)
+    assert cost.terms(1 << 14, w)["hit_above_16k"] == 0.0 and cost.terms(1000, w)["hit_above_16k"] == 0.0
+    assert "hit_above_16k" not in cost.terms(1 << 20, {"cells": 10.0})  # no hit fraction: no term
+
+
+def test_embrees_count_model_is_exp_of_hit_above_16k_fitted_exactly_and_stated_at_two_points():
+    """Embree's time per ray is exp(a + b hit_above_16k) (COUNT_TERMS, COUNT_FORMS): least
+    squares on log time recover a and b exactly on data that follow it; the model is stated
+    by its times at the COUNT_ANCHORS points, each its prediction there."""
+    assert cost.COUNT_TERMS["embree"] == ("1", "hit_above_16k") and cost.COUNT_FORMS["embree"] == "exp"
+    a, b = math.log(9e-8), 0.35
+    rows = [(n, {"cells": 10.0, "refs": None, "hit": h, "length": 0.1}) for n, h in
+            ((500, 0.6), (5000, 0.4), (20000, 0.6), (60000, 0.7), (250000, 0.6), (600000, 0.8), (1_000_000, 0.36))]
+    law = lambda n, h: math.exp(a + b * h * max(math.log2(n) - 14.0, 0.0))  # noqa: E731
+    recs = [SceneRecord(f"s{i}", n, 1000, {"embree": Measurement(0.001, 1000 * law(n, w["hit"]), 1000)}, work=w)
+            for i, (n, w) in enumerate(rows)]
+    f = cost.fit_counts(recs, ("embree",))["embree"]
+    assert (f.terms, f.form, f.refs) == (("1", "hit_above_16k"), "exp", ())
+    assert f.coef == pytest.approx((a, b), rel=1e-9)
+    assert (f.low, f.high) == pytest.approx((1.0, 1.0), abs=1e-9)
+    assert f.predict(1 << 21, {"hit": 0.5}) == pytest.approx(9e-8 * math.exp(0.35 * 3.5), rel=1e-9)
+    assert f.predict(1 << 12, {"hit": 0.9}) == pytest.approx(9e-8, rel=1e-9)  # at most 16k triangles: the constant
+    assert f.constants() == pytest.approx({"at hit_above_16k = 0": 9e-8,
+                                           "at hit_above_16k = 2.5": 9e-8 * math.exp(0.35 * 2.5)}, rel=1e-9)
+    assert f.coefficients() == pytest.approx({"1": 9e-8, "e-folds per hit_above_16k": 0.35}, rel=1e-9)
+    assert f.formula() == "90.00 ns x exp(0.350 x hit_above_16k)"
+    # stated at a reference count, the constant is the time there and the predictions are the same
+    g = cost.CountFit.fit([(n, w, law(n, w["hit"])) for n, w in rows], ("1", "hit_above_16k"), form="exp",
+                          reference={"hit_above_16k": 1.0})
+    assert g.refs == (0.0, 1.0) and g.coef == pytest.approx((a + b, b), rel=1e-9)
+    assert g.formula() == f"{9e-8 * math.exp(0.35) * 1e9:.2f} ns x exp(0.350 x (hit_above_16k - 1))"
+    assert g.predict(1 << 21, {"hit": 0.5}) == pytest.approx(f.predict(1 << 21, {"hit": 0.5}), rel=1e-12)
+    with pytest.raises(ValueError, match="'exp' count model needs the term '1'"):
+        cost.CountFit.fit([(n, w, 1e-7) for n, w in rows], ("hit_above_16k",), form="exp")
+    with pytest.raises(ValueError, match="expected 'linear', 'log' or 'exp'"):
+        cost.CountFit.fit([(n, w, 1e-7) for n, w in rows], ("1", "hit_above_16k"), form="power")
+
+
 def test_records_without_traversal_counts_fit_the_grid_on_cells_and_chosen_terms_never_fall_back():
     """Records made before the grid counted its traversal (no steps in their work) give the
     COUNT_FALLBACK model, a + b cells, where the default terms cannot be fitted; terms a

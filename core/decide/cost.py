@@ -528,10 +528,20 @@ def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread
 
 # -- per-ray times from the grid sample's work counts (issue 14) -------------------------------
 
+#: log2 of the scene size (16,384 triangles) above which each further level of Embree's tree
+#: costs a ray that hits measurably more: below it Embree's time per ray hardly grows with N
+#: (65-125 ns from 500 to 16k triangles on the calibration scenes), above it by about a
+#: quarter per level a hit ray descends (``hit_above_16k``; the threshold had the lowest
+#: leave-one-out error of 12-16, BENCHMARKS.md, issue 14)
+L_CACHED = 14.0
+
+
 def terms(triangles: int, work: dict) -> dict[str, float]:
     """The named quantities a count model may weigh, for one scene: its size and the grid
     sample's per-ray means (``work.Work``; the traversal's own counts only where the file
-    recorded them)."""
+    recorded them).  hit_above_16k: the hit fraction times the levels beyond a 16,384-triangle
+    scene's, hit x max(log2 N - L_CACHED, 0): how much deeper than in a small scene the rays
+    that hit descend."""
     lg = log2n(triangles)
     # a count the sample did not take (refs when no model weighs them) is absent, so a
     # model that needs it fails by name instead of reading a zero
@@ -541,6 +551,8 @@ def terms(triangles: int, work: dict) -> dict[str, float]:
     for k in ("hit", "length"):
         if k in w:
             out[f"{k}_log2n"] = w[k] * lg
+    if "hit" in w:
+        out["hit_above_16k"] = w["hit"] * max(lg - L_CACHED, 0.0)
     return out
 
 
@@ -581,13 +593,14 @@ COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0, "steps": 8.0, "candidates": 20
 #: cells; they have 2^9 to 2^20 triangles).  Two times are the model, as intercept and slope
 #: are, but each is measured by the scenes near it, where a slope is the difference of two
 #: noisy ends (two calibrations in a row: the grid's slope 34% apart, its time per ray at
-#: 5 cells 0.8% and at 40 cells 19%)
+#: 5 cells 0.8% and at 40 cells 19%).  Embree's hit_above_16k: a scene of at most 16k
+#: triangles (or rays that all miss), and 40% of the rays hitting a 2M-triangle scene.
 #: A linear model of several counts is stated, alike, by its times at as many points of
 #: their space as it has coefficients, keyed by the tuple of its counts: the grid's steps and
 #: candidates at three corners of what the calibration scenes span (4-22 steps, 8-38
 #: candidates a ray): few of both (small scenes), many steps and few candidates (cities,
 #: scatter), many of both (large closed meshes, terrain)
-COUNT_ANCHORS = {"cells": (5.0, 40.0), "log2n": (10.0, 20.0),
+COUNT_ANCHORS = {"cells": (5.0, 40.0), "log2n": (10.0, 20.0), "hit_above_16k": (0.0, 2.5),
                  ("steps", "candidates"): ((5.0, 10.0), (10.0, 13.0), (10.0, 35.0))}
 
 
@@ -613,7 +626,10 @@ class CountFit:
     form 'log':    exp(coef['1']) prod_j ((1 + term_j) / (1 + r_j))^coef[j]: exp(coef['1'])
                    is the time per ray at the reference, a power law fitted by least squares
                    on log time (no sign constraint, so no term is dropped in one calibration
-                   and kept in the next).
+                   and kept in the next);
+    form 'exp':    exp(coef['1'] + sum_j coef[j] (term_j - r_j)): exp(coef['1']) is the time
+                   per ray at the reference and coef[j] the e-folds per unit of term j, by
+                   least squares on log time (no sign constraint).
     ``refs`` empty (files of format 2): every r_j = 0."""
 
     terms: tuple
@@ -643,7 +659,13 @@ class CountFit:
             r = np.array([[0.0 if k == "1" else v for k, v in zip(self.terms, refs)]], np.float64)
             cols = _log_columns(x, self.terms)[0] - np.where(np.array(self.terms) == "1", 0.0, np.log1p(r[0]))
             return float(np.exp(cols @ np.asarray(self.coef, np.float64)))
-        return float(sum(c * (t[k] - (0.0 if k == "1" else r)) for k, c, r in zip(self.terms, self.coef, refs)))
+        return self._at({k: t[k] for k in self.weighed})
+
+    def _at(self, counts: dict) -> float:
+        """A 'linear' or 'exp' model's time per ray at ``counts`` ({term: value}, every
+        weighed term)."""
+        s = sum(c * (counts[k] - r) if k != "1" else c for k, c, r in zip(self.terms, self.coef, self._refs()))
+        return float(math.exp(s) if self.form == "exp" else s)
 
     def constants(self) -> dict[str, float]:
         """Each fitted constant by what it means.  A linear model of counts named in
@@ -651,12 +673,10 @@ class CountFit:
         which are the model; any other: the time per ray at the reference (s) and each
         term's slope (linear, s a unit) or exponent (log)."""
         slopes = self.weighed
-        points = _anchor_points(slopes) if self.form == "linear" and "1" in self.terms else None
+        points = _anchor_points(slopes) if self.form in ("linear", "exp") and "1" in self.terms else None
         if points is None:
             return self.coefficients()
-        c, r = dict(zip(self.terms, self.coef)), dict(zip(self.terms, self._refs()))
-        return {"at " + ", ".join(f"{k} = {v:g}" for k, v in p.items()):
-                c["1"] + sum(c[k] * (v - r[k]) for k, v in p.items()) for p in points}
+        return {"at " + ", ".join(f"{k} = {v:g}" for k, v in p.items()): self._at(p) for p in points}
 
     def coefficients(self) -> dict[str, float]:
         """The coefficients as stored: the time per ray at the reference (s) and each
@@ -664,15 +684,20 @@ class CountFit:
         out = {}
         for k, c, r in zip(self.terms, self.coef, self._refs()):
             if k == "1":
-                out["at ref" if self.refs else "1"] = math.exp(c) if self.form == "log" else c
+                out["at ref" if self.refs else "1"] = math.exp(c) if self.form in ("log", "exp") else c
             else:
-                out[("p " if self.form == "log" else "x ") + k] = c
+                out[{"log": "p ", "exp": "e-folds per "}.get(self.form, "x ") + k] = c
         return out
 
     def formula(self) -> str:
         """The model as a reader writes it, in ns: '2.10 ns + 0.10 ns x (log2n - 16)' or
         '919.00 ns x ((1 + cells) / 16)^0.624'."""
         refs = self._refs()
+        if self.form == "exp":
+            scale = math.exp(self.coef[self.terms.index("1")]) * 1e9
+            return f"{scale:.2f} ns x exp(" + " + ".join(
+                f"{c:.3f} x ({t} - {r:g})" if r else f"{c:.3f} x {t}"
+                for t, c, r in zip(self.terms, self.coef, refs) if t != "1") + ")"
         if self.form == "log":
             scale = math.exp(self.coef[self.terms.index("1")]) * 1e9
             return f"{scale:.2f} ns" + "".join(
@@ -688,10 +713,10 @@ class CountFit:
         {term: count} where the constants are stated (default ``COUNT_REFERENCE``; {} states
         them at zero counts, as format 2 did).  The fit itself is the uncentred one, so the
         reference changes the constants, never the predictions."""
-        if form not in ("linear", "log"):
-            raise ValueError(f"unknown count-model form {form!r}; expected 'linear' or 'log'")
-        if form == "log" and "1" not in names:
-            raise ValueError("a 'log' count model needs the term '1' (its scale)")
+        if form not in ("linear", "log", "exp"):
+            raise ValueError(f"unknown count-model form {form!r}; expected 'linear', 'log' or 'exp'")
+        if form in ("log", "exp") and "1" not in names:
+            raise ValueError(f"a {form!r} count model needs the term '1' (its scale)")
         reference = COUNT_REFERENCE if reference is None else reference
         refs = tuple(0.0 if k == "1" else float(reference.get(k, 0.0)) for k in names) if "1" in names else ()
         refs = refs if any(refs) else ()
@@ -703,6 +728,9 @@ class CountFit:
         if form == "log":
             b, *_ = np.linalg.lstsq(_log_columns(x, names), np.log(y), rcond=None)
             shift = sum(c * math.log1p(r) for c, r, k in zip(b, refs, names) if k != "1")
+        elif form == "exp":
+            b, *_ = np.linalg.lstsq(x, np.log(y), rcond=None)  # the column of '1' is ones
+            shift = sum(c * r for c, r, k in zip(b, refs, names) if k != "1")
         else:
             b = nonneg_relative_lsq(x, y)
             shift = sum(c * r for c, r, k in zip(b, refs, names) if k != "1")
@@ -730,10 +758,18 @@ class CountFit:
 #: calibration scenes but not on held-out meshes, and made two calibrations in a row predict
 #: per-ray times far apart (the nonnegative fit trades log2 N against references); scripts/
 #: counts_study.py --analyse / --agree and BENCHMARKS.md (issue 14) have the figures.
+#: Embree's is exp(a + b hit_above_16k): a + b log2 N, fitted on relative residuals, ran a
+#: median 10-17% low on the held-out meshes and 40-50% low on the 1M-triangle ones (their hit
+#: rays descend a tree that has left the cache, where the calibration's low stadium-500k and
+#: scatter scenes and high soups pulled the slope flat); exp(a + b hit_above_16k) follows the
+#: held-out meshes within a median 7-11% and halves the leave-one-out error (31-34% -> 16%),
+#: over two calibrations and two reports' truths.  On the numpy BVH it does not help (its
+#: per-ray time is Python rounds per level, not memory), so that stays a + b log2 N
+#: (BENCHMARKS.md, "Embree's time per ray", issue 14).
 COUNT_TERMS = {
     "grid": ("1", "steps", "candidates"),
     "bvh": ("1", "log2n"),
-    "embree": ("1", "log2n"),
+    "embree": ("1", "hit_above_16k"),
 }
 
 #: the terms a count model falls back on when the records lack its counts (files made before
@@ -742,7 +778,8 @@ COUNT_FALLBACK = {"grid": ("1", "cells")}
 
 
 #: the form of each count model (``CountFit.form``): nonnegative sums, a + b steps + c
-#: candidates for the grid and a + b log2 N for the structures.  The grid was a power law in (1 + cells) while
+#: candidates for the grid and a + b log2 N for the numpy BVH; Embree's exp(a + b
+#: hit_above_16k) (``COUNT_TERMS``).  The grid was a power law in (1 + cells) while
 #: calibration timed 131,072-ray batches; with 524,288 (issue 14, third session) the sum
 #: follows the held-out meshes' grid time per ray twice as closely (median 5.7% against
 #: 10.8% on the 19 scenes of docs/report, 10.7% against 18.1% on an earlier report's truths;
@@ -750,7 +787,7 @@ COUNT_FALLBACK = {"grid": ("1", "cells")}
 #: against the numpy BVH falls from 27.4% to 14.5% (26.9% to 15.8%) with no bias left
 #: (median error +5%, -6%); the power law in log2 N extrapolated worse and moved more between
 #: calibrations for the structures
-COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "linear"}
+COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "exp"}
 
 
 def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=None, reference=None) -> dict[str, CountFit]:
