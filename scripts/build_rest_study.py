@@ -8,7 +8,11 @@ and the report's truths measure it ('measured').  Prints the median build and th
 (max / min - 1) of each row, and how many threads the builds kept busy: the median of each
 build's process CPU seconds over its wall seconds, and the share of builds below
 ``ONE_THREAD`` (Embree builds on every hardware thread; on a VM that has parked its idle vCPU
-the second thread can land on the first's vCPU, and the build runs on about one).  Meshes: the real ones of --scenes that exist (homer,
+the second thread can land on the first's vCPU, and the build runs on about one).
+
+``--before``: instead, each build after the work named (a trace of --rays rays on two threads
+through the numpy BVH, the grid or Embree; making 1M uniform rays on one thread; nothing), then
+``settle_before_build``, the rows interleaved: what runs before the rest decides the state.  Meshes: the real ones of --scenes that exist (homer,
 rocker-arm, stanford-bunny), else procedural ones of the same sizes.
 
     .venv/bin/python scripts/build_rest_study.py
@@ -32,6 +36,7 @@ from hybrid_raycast.core import scenes as scene_lib  # noqa: E402
 from hybrid_raycast.core.decide import measurements as M  # noqa: E402
 from hybrid_raycast.core.factory import build  # noqa: E402
 from hybrid_raycast.core.objio import load_obj  # noqa: E402
+from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
 REAL = ("homer", "rocker-arm", "stanford-bunny")
 ONE_THREAD = M.ONE_THREAD
@@ -65,13 +70,47 @@ def measured_build(mesh) -> tuple[float, float]:
     return timed_build(mesh)
 
 
+def row(name, mesh, how, gap, got) -> str:
+    wall = np.array([w for w, _ in got])
+    busy = np.array([c / w for w, c in got])
+    return (f"| {name} | {mesh.triangle_count:,} | {how} | {gap} | {np.median(wall) * 1e3:.2f} | "
+            f"{100 * (wall.max() / wall.min() - 1):.0f}% | {np.median(busy):.2f} | {int((busy < ONE_THREAD).sum())}/{len(busy)} |")
+
+
+def before_study(folder: Path, builds: int, rays: int) -> None:
+    """Each build after other work, then ``settle_before_build`` (``--before``)."""
+    print(f"| mesh | N | before the rest | gap ms | build ms, median | spread | threads busy, median | "
+          f"builds on about one (< {ONE_THREAD:g}) |\n|---|---:|---|---:|---:|---:|---:|---:|")
+    for name, mesh in meshes(folder):
+        mesh.valid  # noqa: B018
+        o, d = uniform_rays(mesh, rays, seed=0)
+        made = {k: build(mesh, k, threads=2) for k in ("bvh", "grid", "embree")}
+        work = {f"numpy BVH trace, {rays:,} rays, 2 threads": lambda: made["bvh"].trace(o, d),
+                f"grid trace, {rays:,} rays, 2 threads": lambda: made["grid"].trace(o, d),
+                f"Embree trace, {rays:,} rays": lambda: made["embree"].trace(o, d),
+                "1M uniform rays made, 1 thread": lambda: uniform_rays(mesh, 1_000_000, seed=1),
+                "nothing": lambda: None}
+        got = {k: [] for k in work}
+        for _ in range(max(1, builds)):
+            for k, f in work.items():
+                f()
+                got[k].append(measured_build(mesh))
+        for k, g in got.items():
+            print(row(name, mesh, k, f"{M.IDLE_BEFORE_BUILD * 1e3:g}", g), flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default=str(SHARED_SCENES), help="folder of real .obj meshes")
     ap.add_argument("--builds", type=int, default=11, help="builds per row (default 11)")
+    ap.add_argument("--before", action="store_true", help="builds after other work instead of after a gap")
+    ap.add_argument("--rays", type=int, default=200_000, help="rays of each trace before a build (--before)")
     args = ap.parse_args(argv)
     if M.unavailable_reason("embree"):
         raise SystemExit(f"embree: {M.unavailable_reason('embree')}")
+    if args.before:
+        before_study(Path(args.scenes), args.builds, args.rays)
+        return 0
     print("| mesh | N | before the build | gap ms | build ms, median | spread | threads busy, median | "
           f"builds on about one (< {ONE_THREAD:g}) |\n|---|---:|---|---:|---:|---:|---:|---:|")
     for name, mesh in meshes(Path(args.scenes)):
@@ -86,11 +125,7 @@ def main(argv=None) -> int:
                     continue
                 (time.sleep if how == "rest" else spin)(gap / 1e3)
                 got.append(timed_build(mesh))
-            wall = np.array([w for w, _ in got])
-            busy = np.array([c / w for w, c in got])
-            print(f"| {name} | {mesh.triangle_count:,} | {how} | {gap:g} | {np.median(wall) * 1e3:.2f} | "
-                  f"{100 * (wall.max() / wall.min() - 1):.0f}% | {np.median(busy):.2f} | "
-                  f"{int((busy < ONE_THREAD).sum())}/{len(busy)} |")
+            print(row(name, mesh, how, f"{gap:g}", got))
     return 0
 
 

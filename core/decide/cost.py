@@ -690,8 +690,8 @@ class CountFit:
         return out
 
     def formula(self) -> str:
-        """The model as a reader writes it, in ns: '2.10 ns + 0.10 ns x (log2n - 16)' or
-        '919.00 ns x ((1 + cells) / 16)^0.624'."""
+        """The model as a reader writes it, in ns: '2.10 ns + 0.10 ns x (log2n - 16)',
+        '919.00 ns x ((1 + cells) / 16)^0.624' or '89.67 ns x exp(0.346 x hit_above_16k)'."""
         refs = self._refs()
         if self.form == "exp":
             scale = math.exp(self.coef[self.terms.index("1")]) * 1e9
