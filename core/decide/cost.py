@@ -530,9 +530,9 @@ def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread
 
 #: log2 of the scene size (16,384 triangles) above which each further level of Embree's tree
 #: costs a ray that hits measurably more: below it Embree's time per ray hardly grows with N
-#: (65-125 ns from 500 to 16k triangles on the calibration scenes), above it by about a
-#: quarter per level a hit ray descends (``hit_above_16k``; the threshold had the lowest
-#: leave-one-out error of 12-16, BENCHMARKS.md, issue 14)
+#: (65-125 ns from 500 to 16k triangles on the calibration scenes), above it by about 40%
+#: (e^0.35) per level for each ray that hits (``hit_above_16k``; the threshold had the
+#: lowest leave-one-out error of 12-16, BENCHMARKS.md, issue 14)
 L_CACHED = 14.0
 
 
