@@ -537,9 +537,9 @@ def test_a_measured_build_records_its_page_faults_system_time_and_cpu_time(tmp_p
     # the build's CPU time: at least its system part, at most what the whole measure() took
     spent = (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime)
     assert isinstance(m.build_cpu, float) and m.build_system <= m.build_cpu <= spent
-    # the numpy BVH builds on one thread: its CPU time is about its wall time (getrusage
-    # counts in ticks, so a 10 ms build may read a tick either way)
-    assert m.build_parallelism == pytest.approx(1.0, abs=0.5)
+    # the numpy BVH builds on one thread: never much more CPU time than wall time (less when
+    # another process takes the CPU mid-build, so no lower bound but zero)
+    assert 0.0 < m.build_parallelism < 1.5
     # the calibration file keeps them; a file without them (older) loads as None
     rec = SceneRecord("t", mesh.triangle_count, 1000, {"bvh": m, "grid": Measurement(0.005, 0.03, 1000)})
     cal = Calibration({"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}, scenes=[rec], source="hand",
