@@ -7,13 +7,15 @@ asleep ('rest', the machine idle, as before a user's Analyze click) or spinning 
 and the report's truths measure it ('measured').  Prints the median build and the spread
 (max / min - 1) of each row, and how many threads the builds kept busy: the median of each
 build's process CPU seconds over its wall seconds, and the share of builds below
-``ONE_THREAD`` (Embree builds on every hardware thread; on a VM that has parked its idle vCPU
-the second thread can land on the first's vCPU, and the build runs on about one).
+``measurements.ONE_THREAD`` (Embree builds on every hardware thread; on a VM that has parked
+its idle vCPU the second thread can land on the first's vCPU, and the build runs on about one).
 
 ``--before``: instead, each build after the work named (a trace of --rays rays on two threads
 through the numpy BVH, the grid or Embree; making 1M uniform rays on one thread; nothing), then
-``settle_before_build``, the rows interleaved: what runs before the rest decides the state.  Meshes: the real ones of --scenes that exist (homer,
-rocker-arm, stanford-bunny), else procedural ones of the same sizes.
+``settle_before_build``, the rows interleaved: what runs before the rest decides the state.
+
+Meshes: the real ones of --scenes that exist (homer, rocker-arm, stanford-bunny), else
+procedural ones of the same sizes.
 
     .venv/bin/python scripts/build_rest_study.py
 """
@@ -39,7 +41,6 @@ from hybrid_raycast.core.objio import load_obj  # noqa: E402
 from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
 
 REAL = ("homer", "rocker-arm", "stanford-bunny")
-ONE_THREAD = M.ONE_THREAD
 GAPS_MS = (0.0, 1.0, 5.0, 20.0, 100.0, 500.0)
 
 
@@ -70,17 +71,22 @@ def measured_build(mesh) -> tuple[float, float]:
     return timed_build(mesh)
 
 
+def header(before: str) -> str:
+    """The table's head; ``before`` names the column of what preceded the builds."""
+    return (f"| mesh | N | {before} | gap ms | build ms, median | spread | threads busy, median | "
+            f"builds on about one (< {M.ONE_THREAD:g}) |\n|---|---:|---|---:|---:|---:|---:|---:|")
+
+
 def row(name, mesh, how, gap, got) -> str:
     wall = np.array([w for w, _ in got])
     busy = np.array([c / w for w, c in got])
     return (f"| {name} | {mesh.triangle_count:,} | {how} | {gap} | {np.median(wall) * 1e3:.2f} | "
-            f"{100 * (wall.max() / wall.min() - 1):.0f}% | {np.median(busy):.2f} | {int((busy < ONE_THREAD).sum())}/{len(busy)} |")
+            f"{100 * (wall.max() / wall.min() - 1):.0f}% | {np.median(busy):.2f} | {int((busy < M.ONE_THREAD).sum())}/{len(busy)} |")
 
 
 def before_study(folder: Path, builds: int, rays: int) -> None:
     """Each build after other work, then ``settle_before_build`` (``--before``)."""
-    print(f"| mesh | N | before the rest | gap ms | build ms, median | spread | threads busy, median | "
-          f"builds on about one (< {ONE_THREAD:g}) |\n|---|---:|---|---:|---:|---:|---:|---:|")
+    print(header("before the rest"))
     for name, mesh in meshes(folder):
         mesh.valid  # noqa: B018
         o, d = uniform_rays(mesh, rays, seed=0)
@@ -111,8 +117,7 @@ def main(argv=None) -> int:
     if args.before:
         before_study(Path(args.scenes), args.builds, args.rays)
         return 0
-    print("| mesh | N | before the build | gap ms | build ms, median | spread | threads busy, median | "
-          f"builds on about one (< {ONE_THREAD:g}) |\n|---|---:|---|---:|---:|---:|---:|---:|")
+    print(header("before the build"))
     for name, mesh in meshes(Path(args.scenes)):
         mesh.valid  # noqa: B018 -- computed once, outside every timed build
         timed_build(mesh)

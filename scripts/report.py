@@ -1063,7 +1063,7 @@ def summarise(scenes, kinds, samples: int):
             par = [x for x in s.extra.get("build_parallelism", {}).get("embree", []) if x is not None]
             em.append({"name": s.name, "triangles": s.triangles, "build": s.measured["embree"].build,
                        "build_est": s.estimated["embree"].build,
-                       "build_error": rep.relative_error(s.estimated["embree"].build, s.measured["embree"].build),
+                       "build_error": rep.error_components(s, "embree")["build"],
                        "per_ray": s.measured["embree"].per_ray, "R_C": rc, "R_est": re_, "error": rep.relative_error(re_, rc),
                        "parallelism": par})
         out["embree"] = {"scenes": em, "errors": rep.error_summary([x["error"] for x in em]),

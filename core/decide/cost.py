@@ -668,10 +668,10 @@ class CountFit:
         return float(math.exp(s) if self.form == "exp" else s)
 
     def constants(self) -> dict[str, float]:
-        """Each fitted constant by what it means.  A linear model of counts named in
-        ``COUNT_ANCHORS``: its time per ray (s) at the anchor points, one per coefficient,
+        """Each fitted constant by what it means.  A 'linear' or 'exp' model of counts named
+        in ``COUNT_ANCHORS``: its time per ray (s) at the anchor points, one per coefficient,
         which are the model; any other: the time per ray at the reference (s) and each
-        term's slope (linear, s a unit) or exponent (log)."""
+        term's slope (linear, s a unit), exponent (log) or e-folds per unit (exp)."""
         slopes = self.weighed
         points = _anchor_points(slopes) if self.form in ("linear", "exp") and "1" in self.terms else None
         if points is None:
