@@ -3,8 +3,9 @@ before it (issue 14, sixteenth session).  A timing benchmark: run it alone.
 
 For each mesh and each gap, builds Embree ``--builds`` times, each after the gap spent either
 asleep ('rest', the machine idle, as before a user's Analyze click) or spinning on one thread
-('busy'), and also right after the page warming and ``IDLE_BEFORE_BUILD`` as the calibration
-and the report's truths measure it ('measured').  Prints the median build and the spread
+('busy'), and also right after ``settle_before_build`` (the page warming, ``IDLE_BEFORE_BUILD``
+asleep, ``BUSY_BEFORE_BUILD`` spinning) as the calibration and the report's truths measure it
+('measured').  Prints the median build and the spread
 (max / min - 1) of each row, and how many threads the builds kept busy: the median of each
 build's process CPU seconds over its wall seconds, and the share of builds below
 ``measurements.ONE_THREAD`` (Embree builds on every hardware thread; on a VM that has parked
@@ -12,7 +13,12 @@ its idle vCPU the second thread can land on the first's vCPU, and the build runs
 
 ``--before``: instead, each build after the work named (a trace of --rays rays on two threads
 through the numpy BVH, the grid or Embree; making 1M uniform rays on one thread; nothing), then
-``settle_before_build``, the rows interleaved: what runs before the rest decides the state.
+``settle_before_build``, the rows interleaved: what runs before the rest decided the state
+until ``settle_before_build`` ended with ``BUSY_BEFORE_BUILD`` of one thread busy
+(``--busy-ms`` tries another length; 0 shows the state without it).
+
+``--plan``: each build as a plan makes it, after a pause: the grid built, 8,192 uniform rays
+traced through it, then Embree built at once (no settling).
 
 Meshes: the real ones of --scenes that exist (homer, rocker-arm, stanford-bunny), else
 procedural ones of the same sizes.
@@ -50,12 +56,6 @@ def meshes(folder: Path):
                    ("soup-70k", scene_lib.soup(70000))]
 
 
-def spin(seconds: float) -> None:
-    t = time.perf_counter()
-    while time.perf_counter() - t < seconds:
-        pass
-
-
 def timed_build(mesh) -> tuple[float, float]:
     """(wall seconds, process CPU seconds) of one Embree build (CPU NaN where the OS does not
     say)."""
@@ -69,6 +69,11 @@ def measured_build(mesh) -> tuple[float, float]:
     """After what ``measurements._measure`` does before a build (``settle_before_build``)."""
     M.settle_before_build(mesh.triangle_count)
     return timed_build(mesh)
+
+
+def settled_ms() -> str:
+    """The gap column of a build after ``settle_before_build``: its rest + its busy spin, ms."""
+    return f"{M.IDLE_BEFORE_BUILD * 1e3:g} + {M.BUSY_BEFORE_BUILD * 1e3:g} busy"
 
 
 def header(before: str) -> str:
@@ -102,7 +107,22 @@ def before_study(folder: Path, builds: int, rays: int) -> None:
                 f()
                 got[k].append(measured_build(mesh))
         for k, g in got.items():
-            print(row(name, mesh, k, f"{M.IDLE_BEFORE_BUILD * 1e3:g}", g), flush=True)
+            print(row(name, mesh, k, settled_ms(), g), flush=True)
+
+
+def plan_study(folder: Path, builds: int, pause: float = 0.3) -> None:
+    """Embree built as ``plan`` builds it, right after the grid's sample (``--plan``)."""
+    print(header("before the build"))
+    for name, mesh in meshes(folder):
+        mesh.valid  # noqa: B018
+        o, d = uniform_rays(mesh, 8192, seed=0)
+        got = []
+        for _ in range(max(1, builds)):
+            time.sleep(pause)
+            build(mesh, "grid", threads=2).trace(o, d)
+            got.append(timed_build(mesh))
+        print(row(name, mesh, "grid built, 8,192 rays traced, Embree at once", f"{pause * 1e3:g} before the grid", got),
+              flush=True)
 
 
 def main(argv=None) -> int:
@@ -111,9 +131,18 @@ def main(argv=None) -> int:
     ap.add_argument("--builds", type=int, default=11, help="builds per row (default 11)")
     ap.add_argument("--before", action="store_true", help="builds after other work instead of after a gap")
     ap.add_argument("--rays", type=int, default=200_000, help="rays of each trace before a build (--before)")
+    ap.add_argument("--plan", action="store_true", help="builds as a plan makes them, right after the grid's sample")
+    ap.add_argument("--busy-ms", type=float, default=None,
+                    help=f"spin this long before each measured build instead of measurements.BUSY_BEFORE_BUILD "
+                         f"({M.BUSY_BEFORE_BUILD * 1e3:g} ms)")
     args = ap.parse_args(argv)
+    if args.busy_ms is not None:
+        M.BUSY_BEFORE_BUILD = args.busy_ms / 1e3
     if M.unavailable_reason("embree"):
         raise SystemExit(f"embree: {M.unavailable_reason('embree')}")
+    if args.plan:
+        plan_study(Path(args.scenes), args.builds)
+        return 0
     if args.before:
         before_study(Path(args.scenes), args.builds, args.rays)
         return 0
@@ -121,16 +150,16 @@ def main(argv=None) -> int:
     for name, mesh in meshes(Path(args.scenes)):
         mesh.valid  # noqa: B018 -- computed once, outside every timed build
         timed_build(mesh)
-        rows = [(how, gap) for gap in GAPS_MS for how in ("rest", "busy")] + [("measured", M.IDLE_BEFORE_BUILD * 1e3)]
+        rows = [(how, gap) for gap in GAPS_MS for how in ("rest", "busy")] + [("measured", settled_ms())]
         for how, gap in rows:
             got = []
             for _ in range(max(1, args.builds)):
                 if how == "measured":
                     got.append(measured_build(mesh))
                     continue
-                (time.sleep if how == "rest" else spin)(gap / 1e3)
+                (time.sleep if how == "rest" else M.spin)(gap / 1e3)
                 got.append(timed_build(mesh))
-            print(row(name, mesh, how, f"{gap:g}", got))
+            print(row(name, mesh, how, gap if isinstance(gap, str) else f"{gap:g}", got))
     return 0
 
 

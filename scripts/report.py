@@ -615,7 +615,7 @@ def write_markdown(path: Path, R: dict):
               f"threads busy (CPU seconds per second of build, `Measurement.build_parallelism`), and "
               f"{fnum(100 * par['one_thread_share'], 0)}% of the {par['builds']} builds about one (below {ONE_THREAD:g})"
               + (f"; the calibration's, {fnum(cpar['median'], 2)} and {fnum(100 * cpar['one_thread_share'], 0)}% of "
-                 f"{cpar['builds']} scenes" if cpar and cpar["builds"] else "")
+                 f"{cpar['builds']} builds" if cpar and cpar["builds"] else "")
               + ". A build on one thread takes about 1.5-1.9x as long (BENCHMARKS.md, \"Embree's builds on one "
                 "thread or two\").\n")
         w("| scene | N | Embree build ms | estimated | build error | threads busy per pass | t_E µs | R_C(Embree) | "
@@ -1073,6 +1073,13 @@ def summarise(scenes, kinds, samples: int):
     return out
 
 
+def calibration_parallelism(cal, kind: str) -> list:
+    """The calibration's builds of ``kind``: each pass's threads busy where the file keeps its
+    passes (``SceneRecord.passes``), else each scene's median build over its median CPU time."""
+    return [m.build_parallelism for r in cal.scenes
+            for m in (r.passes.get(kind) or ([r.kinds[kind]] if kind in r.kinds else []))]
+
+
 def parallelism_summary(values) -> dict:
     """Builds' CPU seconds per second (``Measurement.build_parallelism``): their median, how
     many there are and the share that kept about one thread busy (below ONE_THREAD)."""
@@ -1280,9 +1287,7 @@ def main(argv=None):
 
     summary = summarise(results, kinds, args.samples)
     if summary.get("embree"):
-        # the calibration's Embree builds (the median build of each scene over its median CPU time)
-        summary["embree"]["calibration_parallelism"] = parallelism_summary(
-            [r.kinds["embree"].build_parallelism for r in cal.scenes if "embree" in r.kinds])
+        summary["embree"]["calibration_parallelism"] = parallelism_summary(calibration_parallelism(cal, "embree"))
     models = model_comparison(results, cal)
     summary["count_models"] = {k: count_comparison(cal, k, args.samples) for k in kinds}
     if args.calibrations >= 2:

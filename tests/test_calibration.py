@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -35,6 +36,7 @@ from hybrid_raycast.core.decide import (
 def hand_calibration(**kw) -> Calibration:
     fits = {"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}
     rec = SceneRecord("a", 1000, 100, {"bvh": Measurement(0.01, 0.02, 100, 2), "grid": Measurement(0.005, 0.03, 100, 2)})
+    rec.passes = {"bvh": [Measurement(0.01, 0.02, 100, 2, 10, 0.001, 0.019), Measurement(0.012, 0.021, 100, 2)]}
     return Calibration(fits, scenes=[rec], source="hand", created="2026-01-01T00:00:00+00:00", **kw)
 
 
@@ -253,6 +255,25 @@ def test_calibrate_tiny_set_records_the_grid_but_fits_only_the_candidates():
     for r in cal.scenes:
         assert set(r.kinds) == {"grid", "bvh"}, f"{r.name} measured {set(r.kinds)}"
         assert all(m.build_time > 0 and m.trace_time > 0 for m in r.kinds.values())
+
+
+def test_calibrate_keeps_every_passs_measurement_and_its_medians_are_theirs(tmp_path):
+    cal = calibrate(S.calibration_set("tiny")[:2], kinds=("bvh",), rays_per_scene=200, repeats=3)
+    for r in cal.scenes:
+        assert {k: len(v) for k, v in r.passes.items()} == {"grid": 3, "bvh": 3}, f"{r.name}: {r.passes}"
+        for k, v in r.passes.items():
+            assert r.kinds[k] == M.median_measurement(v)
+    back = load(cal.save(tmp_path / "cal.json"))
+    assert [r.passes for r in back.scenes] == [r.passes for r in cal.scenes]
+
+
+def test_a_file_without_passes_loads_with_none(tmp_path):
+    d = hand_calibration().to_dict()
+    for s in d["scenes"]:
+        del s["passes"]
+    back = Calibration.from_dict(d)
+    assert [r.passes for r in back.scenes] == [{}]
+    assert back.scenes[0].kinds == hand_calibration().scenes[0].kinds
 
 
 def test_measure_break_even_uses_the_estimates_formula_on_measured_times():
@@ -571,23 +592,35 @@ def test_build_parallelism_is_cpu_seconds_per_second_of_build_and_none_without_e
 
 def test_each_measured_build_comes_right_after_its_scenes_memory_is_written_and_a_rest(monkeypatch):
     """The page warming runs before every timed build, sized from that scene, then the
-    process rests IDLE_BEFORE_BUILD, and nothing else comes between them and the build (on a
-    VM whose host takes idle memory back, a build after a long idle gap waited for the host;
-    Embree's small builds ran twice as fast right after another build as after a rest,
-    issue 14)."""
+    process rests IDLE_BEFORE_BUILD and spins BUSY_BEFORE_BUILD, and nothing else comes
+    between them and the build (on a VM whose host takes idle memory back, a build after a
+    long idle gap waited for the host; Embree's small builds ran on one thread or two
+    depending on the work before the rest, issue 14)."""
     log = []
     monkeypatch.setattr(M, "warm_pages", lambda n: log.append(("warm", n)))
     monkeypatch.setattr(M.time, "sleep", lambda s: log.append(("rest", s)))
+    monkeypatch.setattr(M, "spin", lambda s: log.append(("busy", s)))
     real_build = M.build
     monkeypatch.setattr(M, "build", lambda mesh, kind, **cfg: log.append(("build", kind)) or real_build(mesh, kind, **cfg))
     small, large = S.sphere(80), S.soup(3000, seed=1)
     o, d = uniform_rays(small, 50, seed=0)
     M.measure(small, "grid", o, d, threads=1)
     M.measure(large, "bvh", o, d, threads=1)
-    rest = ("rest", M.IDLE_BEFORE_BUILD)
-    assert log == [("warm", M.warm_bytes(small.triangle_count)), rest, ("build", "grid"),
-                   ("warm", M.warm_bytes(large.triangle_count)), rest, ("build", "bvh")]
+    rest, busy = ("rest", M.IDLE_BEFORE_BUILD), ("busy", M.BUSY_BEFORE_BUILD)
+    assert log == [("warm", M.warm_bytes(small.triangle_count)), rest, busy, ("build", "grid"),
+                   ("warm", M.warm_bytes(large.triangle_count)), rest, busy, ("build", "bvh")]
     assert 0.02 <= M.IDLE_BEFORE_BUILD <= 0.5  # past the fast state (< 20 ms), short of the host's handback
+    assert 0.05 <= M.BUSY_BEFORE_BUILD <= 0.5  # 20 ms left the state of the work before; 100 ms did not
+
+
+def test_spin_keeps_the_thread_busy_for_the_time_asked_without_sleeping(monkeypatch):
+    def no_sleep(s):
+        raise AssertionError("spin slept")
+
+    monkeypatch.setattr(M.time, "sleep", no_sleep)
+    t0 = time.perf_counter()
+    M.spin(0.03)
+    assert time.perf_counter() - t0 >= 0.03
 
 
 def test_warm_bytes_is_512_a_triangle_between_16_mib_and_1_gib_and_an_eighth_of_free_memory(monkeypatch):

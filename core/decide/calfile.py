@@ -224,7 +224,8 @@ class Calibration:
             scenes = [
                 SceneRecord(s["name"], int(s["triangles"]), int(s["rays"]), {k: Measurement(**m) for k, m in s["kinds"].items()},
                             {int(k): float(v) for k, v in s.get("grid_samples", {}).items()},
-                            {str(k): float(v) for k, v in s.get("work", {}).items() if v is not None})
+                            {str(k): float(v) for k, v in s.get("work", {}).items() if v is not None},
+                            {str(k): [Measurement(**m) for m in v] for k, v in s.get("passes", {}).items()})
                 for s in d.get("scenes", [])
             ]
             model = str(d.get("model", DEFAULT_MODEL))

@@ -98,7 +98,8 @@ class Measurement:
 
 @dataclass
 class SceneRecord:
-    """One calibration scene: its size and one Measurement per structure."""
+    """One calibration scene: its size and one Measurement per structure (the median of its
+    passes, ``measurements.median_measurement``)."""
 
     name: str
     triangles: int
@@ -108,6 +109,9 @@ class SceneRecord:
     grid_samples: dict[int, float] = field(default_factory=dict)
     #: the grid's per-ray work counts on K uniform sample rays (``work.Work`` as a dict)
     work: dict = field(default_factory=dict)
+    #: every pass's Measurement of each structure, in pass order ({} in older files): the
+    #: state of each build (``Measurement.build_parallelism``), not only the medians in kinds
+    passes: dict[str, list[Measurement]] = field(default_factory=dict)
 
     def grid_sample_ratio(self, k: int) -> float | None:
         """Large-workload grid time per ray over the K-ray sample's, or None if not measured."""
