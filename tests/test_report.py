@@ -388,6 +388,16 @@ def test_parallelism_summary_counts_the_builds_that_kept_about_one_thread_busy()
     assert empty["builds"] == 0 and math.isnan(empty["median"]) and math.isnan(empty["one_thread_share"])
 
 
+def test_the_calibrations_builds_are_each_pass_where_the_file_keeps_them_else_each_scenes_median():
+    R = report_script()
+    kept = SceneRecord("a", 1000, 10, {"embree": Measurement(0.01, 1.0, 10, 2, build_cpu=0.019)})
+    kept.passes = {"embree": [Measurement(0.01, 1.0, 10, 2, build_cpu=0.019), Measurement(0.02, 1.0, 10, 2, build_cpu=0.02)]}
+    old = SceneRecord("b", 1000, 10, {"embree": Measurement(0.01, 1.0, 10, 2, build_cpu=0.015)})
+    none = SceneRecord("c", 1000, 10, {"grid": Measurement(0.01, 1.0, 10, 2)})
+    cal = SimpleNamespace(scenes=[kept, old, none])
+    assert R.calibration_parallelism(cal, "embree") == pytest.approx([1.9, 1.0, 1.5])
+
+
 def test_large_builds_list_both_calibrations_builds_with_their_page_faults():
     R = report_script()
     fits = {"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}
