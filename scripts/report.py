@@ -879,8 +879,16 @@ def get_calibration(args, beside=None):
     return cal, how
 
 
+def again_path(first, n: int) -> Path:
+    """Where the report saves its calibration number ``n`` (2, 3, ...), beside the first
+    (``--calibration``), so each pass of each one can be compared afterwards."""
+    first = Path(first)
+    return first.with_name(f"{first.stem}_{n}{first.suffix or '.json'}")
+
+
 def calibrate_again(args, cal: Calibration):
-    """A second calibration right after the first (same set and settings), not saved."""
+    """Another calibration right after the first (same set and settings); the caller saves it
+    (``again_path``)."""
     log(f"calibrating again, for the constants' repeatability ({args.cal_scale} set)")
     return calibrate(kinds=tuple(cal.fits), scale=args.cal_scale, rays_per_scene=args.cal_rays,
                      model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_options(args))
@@ -1295,6 +1303,7 @@ def main(argv=None):
         for i in range(args.calibrations - 1):
             again.append(calibrate_again(args, cal))
             notes += [f"calibration {i + 2}: {x}" for x in again[-1].notes]
+            log(f"calibration {i + 2} saved to {again[-1].save(again_path(args.calibration, i + 2))}")
         first = ("measured in the same passes as the truths" if "truths" in joint else
                  "reused from a file" if cal_how.startswith("reused") else "measured alone")
         # the goal's pair first: the last two plain calibrations when there are two

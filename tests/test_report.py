@@ -398,6 +398,12 @@ def test_the_calibrations_builds_are_each_pass_where_the_file_keeps_them_else_ea
     assert R.calibration_parallelism(cal, "embree") == pytest.approx([1.9, 1.0, 1.5])
 
 
+def test_the_reports_later_calibrations_are_saved_beside_the_first():
+    R = report_script()
+    assert R.again_path("out/report_calibration.json", 2) == Path("out/report_calibration_2.json")
+    assert R.again_path("/tmp/cal", 3) == Path("/tmp/cal_3.json")
+
+
 def test_large_builds_list_both_calibrations_builds_with_their_page_faults():
     R = report_script()
     fits = {"bvh": KindFit(2e-7, 3e-7, 1e-7, 4e-7, 2e-7, 5e-7, 3)}
