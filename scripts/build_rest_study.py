@@ -150,16 +150,16 @@ def main(argv=None) -> int:
     for name, mesh in meshes(Path(args.scenes)):
         mesh.valid  # noqa: B018 -- computed once, outside every timed build
         timed_build(mesh)
-        rows = [(how, gap) for gap in GAPS_MS for how in ("rest", "busy")] + [("measured", settled_ms())]
-        for how, gap in rows:
+        rows = [(how, f"{gap:g}", gap / 1e3) for gap in GAPS_MS for how in ("rest", "busy")]
+        for how, label, seconds in rows + [("measured", settled_ms(), None)]:
             got = []
             for _ in range(max(1, args.builds)):
                 if how == "measured":
                     got.append(measured_build(mesh))
                     continue
-                (time.sleep if how == "rest" else M.spin)(gap / 1e3)
+                (time.sleep if how == "rest" else M.spin)(seconds)
                 got.append(timed_build(mesh))
-            print(row(name, mesh, how, gap if isinstance(gap, str) else f"{gap:g}", got))
+            print(row(name, mesh, how, label, got))
     return 0
 
 

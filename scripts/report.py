@@ -1303,7 +1303,8 @@ def main(argv=None):
         for i in range(args.calibrations - 1):
             again.append(calibrate_again(args, cal))
             notes += [f"calibration {i + 2}: {x}" for x in again[-1].notes]
-            log(f"calibration {i + 2} saved to {again[-1].save(again_path(args.calibration, i + 2))}")
+            saved = again[-1].save(again_path(args.calibration, i + 2))
+            log(f"calibration {i + 2} saved to {saved}")
         first = ("measured in the same passes as the truths" if "truths" in joint else
                  "reused from a file" if cal_how.startswith("reused") else "measured alone")
         # the goal's pair first: the last two plain calibrations when there are two
