@@ -489,7 +489,7 @@ def test_calibration_repeats_are_passes_over_all_scenes_and_records_keep_each_sc
     from pass to pass, and each record keeps the medians of its own passes."""
     calls = []
 
-    def fake_measure(mesh, kind, origins, directions, *, threads=None, config=None):
+    def fake_measure(mesh, kind, origins, directions, *, threads=None, config=None, builds=None):
         if len(origins) != 40:  # warm_up's untimed 64 rays
             return M.Measurement(1.0, 1.0, len(origins), 1)
         calls.append((mesh.triangle_count, kind, len(origins)))
@@ -519,7 +519,7 @@ def test_calibrate_runs_the_jobs_beside_it_in_its_own_passes_and_hands_back_thei
     keep only their own measurements."""
     log = []
 
-    def fake_measure(mesh, kind, origins, directions, *, threads=None, config=None):
+    def fake_measure(mesh, kind, origins, directions, *, threads=None, config=None, builds=None):
         if len(origins) != 40:  # warm_up's untimed rays
             return M.Measurement(1.0, 1.0, len(origins), 1)
         log.append(("cal", mesh.triangle_count, kind))
@@ -603,14 +603,56 @@ def test_each_measured_build_comes_right_after_its_scenes_memory_is_written_and_
     real_build = M.build
     monkeypatch.setattr(M, "build", lambda mesh, kind, **cfg: log.append(("build", kind)) or real_build(mesh, kind, **cfg))
     small, large = S.sphere(80), S.soup(3000, seed=1)
+    monkeypatch.setattr(M, "SMALL_SCENE", small.triangle_count)  # small: several builds; large: one
+    monkeypatch.setattr(M, "SMALL_BUILDS", 3)
     o, d = uniform_rays(small, 50, seed=0)
+    M.measure(small, "bvh", o, d, threads=1)
     M.measure(small, "grid", o, d, threads=1)
     M.measure(large, "bvh", o, d, threads=1)
     rest, busy = ("rest", M.IDLE_BEFORE_BUILD), ("busy", M.BUSY_BEFORE_BUILD)
-    assert log == [("warm", M.warm_bytes(small.triangle_count)), rest, busy, ("build", "grid"),
-                   ("warm", M.warm_bytes(large.triangle_count)), rest, busy, ("build", "bvh")]
+    settled = lambda mesh, kind: [("warm", M.warm_bytes(mesh.triangle_count)), rest, busy, ("build", kind)]  # noqa: E731
+    assert log == settled(small, "bvh") * 3 + settled(small, "grid") + settled(large, "bvh")
     assert 0.02 <= M.IDLE_BEFORE_BUILD <= 0.5  # past the fast state (< 20 ms), short of the host's handback
     assert 0.05 <= M.BUSY_BEFORE_BUILD <= 0.5  # 20 ms left the state of the work before; 100 ms did not
+
+
+def test_a_small_scenes_measurement_keeps_its_median_build_with_that_builds_own_kernel_figures(monkeypatch):
+    """A fitted structure on a scene of at most SMALL_SCENE triangles is built SMALL_BUILDS
+    times, each settled, and the measurement keeps the median build's time, faults, system
+    and CPU seconds; the rays are traced through the last structure built.  A larger scene,
+    the grid (no constant is fitted to its build) and ``builds=1`` build once."""
+    times = iter([0.004, 0.001, 0.003, 0.002, 0.009])
+    usage = iter([(0, 0.0, 0.0), (10, 0.001, 0.006),      # 0.004 s
+                  (10, 0.001, 0.006), (11, 0.001, 0.007),  # 0.001 s
+                  (11, 0.001, 0.007), (41, 0.004, 0.013),  # 0.003 s: the median
+                  (41, 0.004, 0.013), (43, 0.004, 0.016),  # 0.002 s
+                  (43, 0.004, 0.016), (99, 0.010, 0.034)])  # 0.009 s
+    built, traced = [], []
+
+    class Fake:
+        threads = 2
+
+        def __init__(self):
+            self.build_time = next(times)
+            built.append(self)
+
+    monkeypatch.setattr(M, "settle_before_build", lambda n: None)
+    monkeypatch.setattr(M, "_kernel_usage", lambda: next(usage))
+    monkeypatch.setattr(M, "build", lambda mesh, kind, **cfg: Fake())
+    monkeypatch.setattr(M, "time_trace", lambda accel, o, d: traced.append(accel) or (None, 0.5))
+    mesh = S.sphere(80)
+    assert mesh.triangle_count <= M.SMALL_SCENE and M.SMALL_BUILDS == 5
+    o, d = uniform_rays(mesh, 10, seed=0)
+    m = M.measure(mesh, "embree", o, d)
+    assert len(built) == 5 and traced == [built[-1]]
+    assert (m.build_time, m.build_faults, m.build_system, m.build_cpu, m.trace_time, m.rays, m.threads) == (
+        0.003, 30, pytest.approx(0.003), pytest.approx(0.006), 0.5, 10, 2)
+    assert [M.builds_per_measurement(n, "bvh") for n in (1, M.SMALL_SCENE, M.SMALL_SCENE + 1, 10 ** 6)] == [5, 5, 1, 1]
+    assert M.builds_per_measurement(1, "embree") == 5 and M.builds_per_measurement(1, "grid") == 1
+    built.clear()
+    times = iter([0.007])
+    usage = iter([(0, 0.0, 0.0), (3, 0.001, 0.01)])
+    assert M.measure(mesh, "bvh", o, d, builds=1).build_time == 0.007 and len(built) == 1
 
 
 def test_spin_keeps_the_thread_busy_for_the_time_asked_without_sleeping(monkeypatch):

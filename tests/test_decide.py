@@ -129,9 +129,9 @@ def test_measure_break_evens_measures_each_scene_in_passes_with_its_own_medians(
     order = []
     real = M._measure
 
-    def spy(mesh, kind, o, d, threads, config):
+    def spy(mesh, kind, o, d, threads, config, builds=None):
         order.append((mesh.triangle_count, kind))
-        return real(mesh, kind, o, d, threads, config)
+        return real(mesh, kind, o, d, threads, config, builds)
 
     monkeypatch.setattr(M, "_measure", spy)
     a, b = S.torus(800), S.sphere(1500)
