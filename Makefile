@@ -123,7 +123,7 @@ bench-scan: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/bench_scan.py
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes,
-## the calibration and the truths in the same passes (about 32 minutes on the 2-core VM, 13 with
+## the calibration and the truths in the same passes (about 42 minutes on the 2-core VM, 13 with
 ## REPORT_ARGS="--reuse-calibration --calibration core/default_calibration.json"; --quick: a smoke run).
 report: $(VENV)/.stamp
 	$(PY) scripts/report.py $(REPORT_ARGS)
