@@ -88,13 +88,15 @@ def measure(mesh: TriangleMesh, kind: str, origins, directions, *, threads=None,
             builds: int | None = None) -> Measurement:
     """Build ``kind`` over ``mesh`` and trace the rays through it: one Measurement.
 
-    One build a measurement, as a plan's structure is built once: builds repeated back to
-    back reuse the memory the previous one freed, and a median of up to nine of them put a
-    20k-triangle scene's numpy BVH build at 34-38 ms where single builds take 48-68 ms
-    (issue 14; the held-out break-even error rose from 12-14% to 23% with it).  A small
-    scene's build is the exception (``builds_per_measurement``): it is timed several
-    times, each build settled as the first is, and the median one is kept.  ``builds``
-    overrides that count (1 where only the trace is wanted)."""
+    A plan's structure is built once, and builds repeated back to back are not like it:
+    they reuse the memory the previous one freed, and a median of up to nine of them put a
+    20k-triangle scene's numpy BVH build at 34-38 ms where single builds took 48-68 ms
+    (issue 14; the held-out break-even error rose from 12-14% to 23% with it).  So a large
+    scene's build is timed once.  A small scene's (``builds_per_measurement``) is timed
+    several times, each build after its own ``settle_before_build``, which makes the later
+    ones like the first (sphere-20k's numpy BVH 31.3-31.8 ms and Embree 3.3-3.5 ms by
+    position, ``scripts/small_build_study.py --order``), and the median one is kept.
+    ``builds`` overrides that count (1 where only the trace is wanted)."""
     return _measure(mesh, kind, origins, directions, threads, config, builds)[0]
 
 
