@@ -40,9 +40,12 @@ RESAMPLES = 4000
 
 
 def small_scenes(limit: int | None):
-    """The default calibration set's scenes of at most SMALL_SCENE triangles, made and prepared."""
+    """The default calibration set's scenes of at most SMALL_SCENE triangles, made and prepared
+    (a scene whose asked size is far above it is not generated: the set reaches 1M triangles)."""
     out = []
     for name, factory in scene_lib.calibration_set("default"):
+        if factory.args[0] > 2 * M.SMALL_SCENE:
+            continue
         mesh = factory()
         if mesh.triangle_count <= M.SMALL_SCENE:
             M.prepare_mesh(mesh)
