@@ -187,7 +187,7 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     )
     sample_rays: IntProperty(
         name="Sample Rays",
-        description="Representative rays traced through the grid to measure its time per ray (K in the paper)",
+        description="Representative rays traced through the grid, whose work counts give its time per ray (K in the paper)",
         default=DEFAULT_SAMPLES, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
     )
     grid_density: FloatProperty(

@@ -13,7 +13,7 @@ from .intersect import prepare_rays
 from .mesh import TriangleMesh
 from .objio import load_obj
 from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
-from .rays import camera_rays, hemisphere_rays, uniform_rays
+from .rays import camera_rays, hemisphere_rays, quasi_uniform_rays, uniform_rays
 from . import decide
 from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even, measure_break_evens
 from .plan import Plan, plan, ski_rental, trace_online
@@ -50,5 +50,6 @@ __all__ = [
     "SceneFileError",
     "distributed",
     "prepare_rays",
+    "quasi_uniform_rays",
     "uniform_rays",
 ]

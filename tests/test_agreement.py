@@ -18,6 +18,7 @@ import pytest
 
 from conftest import real_scene_paths
 from hybrid_raycast import core
+from hybrid_raycast.core.rays import radical_inverse
 from reference import (
     NUMPY_KINDS,
     describe_ray,
@@ -260,6 +261,46 @@ def test_uniform_rays_have_explicit_dtypes_fill_the_padded_box_and_cover_the_sph
     o2, d2 = core.uniform_rays((lo, hi), 20000, seed=5)
     assert (o == o2).all() and (d == d2).all(), "the same seed must give the same rays"
     assert not (core.uniform_rays((lo, hi), 10, seed=6)[1] == d[:10]).all()
+
+
+def test_radical_inverse_mirrors_the_digits_about_the_radix_point():
+    np.testing.assert_array_equal(radical_inverse(np.arange(6), 2), [0, 0.5, 0.25, 0.75, 0.125, 0.625])
+    np.testing.assert_allclose(radical_inverse(np.arange(1, 6), 3), [1 / 3, 2 / 3, 1 / 9, 4 / 9, 7 / 9])
+    assert radical_inverse(np.array([1 << 40]), 2)[0] == 2.0 ** -41
+    with pytest.raises(ValueError, match="non-negative"):
+        radical_inverse(np.array([-1]), 2)
+
+
+def _hits_sphere(o, d, centre, radius):
+    """Whether the half-lines o + t d (t >= 0, d unit) meet the ball, in float64."""
+    oc = centre - o.astype(np.float64)
+    along = (oc * d).sum(axis=1)
+    gap2 = (oc * oc).sum(axis=1) - along ** 2
+    inside = (oc * oc).sum(axis=1) <= radius ** 2
+    return inside | ((along > 0) & (gap2 <= radius ** 2))
+
+
+def test_quasi_uniform_rays_are_the_papers_distribution_and_their_means_move_less_between_seeds():
+    lo, hi = np.array([-1.0, 0.0, 2.0]), np.array([3.0, 0.0, 4.0])  # flat in y
+    o, d = core.quasi_uniform_rays((lo, hi), 20000, seed=5)
+    assert o.dtype == np.float32 and d.dtype == np.float32 and o.shape == d.shape == (20000, 3)
+    pad = 0.01 * np.linalg.norm(hi - lo)
+    assert (o >= lo - pad - 1e-5).all() and (o <= hi + pad + 1e-5).all()
+    assert o[:, 1].max() - o[:, 1].min() > pad
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, atol=1e-6)
+    assert np.abs(d.mean(axis=0)).max() < 0.01 and np.abs((d ** 2).mean(axis=0) - 1 / 3).max() < 0.01
+    np.testing.assert_allclose(o.mean(axis=0), (lo + hi) / 2, atol=0.01)
+    o2, d2 = core.quasi_uniform_rays((lo, hi), 20000, seed=5)
+    assert (o == o2).all() and (d == d2).all(), "the same seed must give the same rays"
+    assert not (core.quasi_uniform_rays((lo, hi), 10, seed=6)[1] == d[:10]).all()
+    # the share of rays that meet a ball inside a unit box: the same mean as independent
+    # rays, with a smaller spread over seeds (what a plan's break-even inherits)
+    box, centre = (np.zeros(3), np.ones(3)), np.full(3, 0.5)
+    share = {f: np.array([_hits_sphere(*f(box, 2048, seed=s), centre, 0.25).mean() for s in range(40)])
+             for f in (core.uniform_rays, core.quasi_uniform_rays)}
+    rnd, qmc = share[core.uniform_rays], share[core.quasi_uniform_rays]
+    assert abs(qmc.mean() - rnd.mean()) < 3 * np.hypot(rnd.std(), qmc.std()) / np.sqrt(40)
+    assert qmc.std() < 0.75 * rnd.std(), f"quasi-random spread {qmc.std():.4f} vs independent {rnd.std():.4f}"
 
 
 def test_camera_rays_are_row_major_from_the_top_with_fov_across_the_larger_side():

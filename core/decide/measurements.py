@@ -63,8 +63,8 @@ SCALE_NOTES = {
                 f"each, {CALIBRATION_REPEATS} passes over them; the constants the add-on ships"),
 }
 #: sample rays on which calibration counts the grid's per-ray work, as a plan does on its K
-#: (``work.DEFAULT_SAMPLES``, 8,192): the counts are means over the rays, the same for any K
-#: but for their noise, and the fit gets the less noisy means of twice as many rays
+#: (``work.DEFAULT_SAMPLES``): the counts are means over the rays, the same for any K but
+#: for their noise
 WORK_SAMPLES = 16384
 
 
@@ -537,14 +537,15 @@ def _grid_samples(mesh, ladder, threads, config, seed) -> dict[int, float]:
 
 
 def sample_work(mesh, k: int, *, threads=None, config=None, seed=0) -> Work:
-    """The grid's per-ray work counts on K uniform sample rays, as ``plan`` counts them."""
-    from ..rays import uniform_rays
+    """The grid's per-ray work counts on K uniform sample rays, as ``plan`` counts them
+    (quasi-random, ``rays.quasi_uniform_rays``)."""
+    from ..rays import quasi_uniform_rays
 
     cfg = dict(config or {})
     if threads is not None:
         cfg.setdefault("threads", threads)
     grid = build(mesh, "grid", **cfg)
-    o, d = uniform_rays(mesh, int(k), seed=seed)
+    o, d = quasi_uniform_rays(mesh, int(k), seed=seed)
     before = grid.traversal_work()
     t = grid.trace(o, d).t
     return grid_work(grid, o, d, t, traversal=traversal_counts(before, grid.traversal_work()))

@@ -32,13 +32,16 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 #: the default number of sample rays a plan traces through the grid (``core.plan``).  The
-#: estimate reads the sample's work counts, not its time: a mean over K rays whose relative
-#: standard error is about 1/sqrt(K) (1.1% at 8,192).  The report's sweep (six held-out scenes, density 1)
-#: gave median break-even errors of 11.3%, 12.8% and 14.0% at K = 4,096, 8,192 and
-#: 16,384; the estimate's cost at 1e6 rays (bunny, beetle-alt, cow; locked run
-#: 2026-12-01 22:34) 1.6-2.8%, 2.4-3.7% and 3.8-6.1%.  8,192 keeps the cost under the
-#: issue's 5% with a margin for repeatability on small scenes.
-DEFAULT_SAMPLES = 8192
+#: estimate reads the sample's work counts, not its time: a mean over K rays whose spread
+#: between seeds the break-even multiplies by t_grid / (t_grid - t_bvh), 4-8 on the small
+#: real meshes.  Five plans of one scene must agree within max / min 1.2 (issue 14): with
+#: independent uniform rays at 8,192, the break-even's standard deviation between seeds was
+#: up to 8.0% (cow), and report S's five runs reached 1.22 (suzanne); with quasi-random rays
+#: (``rays.quasi_uniform_rays``) up to 7.1% at 8,192 and 3.8% at 16,384 (24 seeds, meshes
+#: up to 278k triangles; BENCHMARKS.md, "Quasi-random sample rays").  The estimate's cost
+#: at 1e6 rays grows with K: report S's sweep (density 2) gave a median 2.4% at 8,192 and
+#: 4.0% at 16,384, under the issue's 5%.
+DEFAULT_SAMPLES = 16384
 
 #: points per ray at which the reference count of the cells along the segment is read
 POINTS = 16
