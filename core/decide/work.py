@@ -37,8 +37,9 @@ import numpy as np
 #: real meshes.  Five plans of one scene must agree within max / min 1.2 (issue 14): with
 #: independent uniform rays at 8,192, the break-even's standard deviation between seeds was
 #: up to 8.0% (cow), and report S's five runs reached 1.22 (suzanne); with quasi-random rays
-#: (``rays.quasi_uniform_rays``) up to 7.1% at 8,192 and 3.8% at 16,384 (24 seeds, meshes
-#: up to 278k triangles; BENCHMARKS.md, "Quasi-random sample rays").  The estimate's cost
+#: (``rays.quasi_uniform_rays``) up to 7.1% at 8,192 and 3.5% at 16,384 (16 seeds, the 9
+#: real meshes up to 70k triangles; 3.8% with 24 seeds on 12 up to 278k; BENCHMARKS.md,
+#: "Quasi-random sample rays").  The estimate's cost
 #: at 1e6 rays grows with K: report S's sweep (density 2) gave a median 2.4% at 8,192 and
 #: 4.0% at 16,384, under the issue's 5%.
 DEFAULT_SAMPLES = 16384
