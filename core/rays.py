@@ -67,18 +67,42 @@ def uniform_rays(mesh_or_bounds, m: int, seed=0, pad: float = 0.01):
 HALTON_BASES = (2, 3, 5, 7, 11)
 
 
-def radical_inverse(i, base: int) -> np.ndarray:
-    """The van der Corput sequence: the base-``base`` digits of the non-negative integers
-    ``i`` mirrored about the radix point, as float64 in [0, 1) (3 in base 2 is 0.11 = 0.75)."""
-    i = np.array(i, np.int64)
-    if (i < 0).any():
-        raise ValueError("radical_inverse takes non-negative integers")
+def _digit_by_digit(i: np.ndarray, base: int) -> np.ndarray:
     out = np.zeros(i.shape)
     scale = 1.0
     while i.any():
         scale /= base
         i, digit = np.divmod(i, base)
         out += scale * digit
+    return out
+
+
+#: {base: (base ** j, the radical inverses of 0 .. base ** j - 1)}, j digits at a time
+_DIGIT_TABLES: dict[int, tuple[int, np.ndarray]] = {}
+
+
+def radical_inverse(i, base: int) -> np.ndarray:
+    """The van der Corput sequence: the base-``base`` digits of the non-negative integers
+    ``i`` mirrored about the radix point, as float64 in [0, 1) (3 in base 2 is 0.11 = 0.75).
+
+    Mirrors j digits at a time from a table of the first ``base ** j`` <= 4,096 values, a
+    fifth of the numpy calls of one digit at a time (which made ``quasi_uniform_rays`` cost
+    6x ``uniform_rays``)."""
+    i = np.array(i, np.int64)
+    if (i < 0).any():
+        raise ValueError("radical_inverse takes non-negative integers")
+    if base not in _DIGIT_TABLES:
+        size = base
+        while size * base <= 4096:
+            size *= base
+        _DIGIT_TABLES[base] = (size, _digit_by_digit(np.arange(size), base))
+    size, table = _DIGIT_TABLES[base]
+    out = np.zeros(i.shape)
+    scale = 1.0
+    while i.any():
+        i, low = np.divmod(i, size)
+        out += scale * table[low]
+        scale /= size
     return out
 
 
