@@ -68,6 +68,7 @@ HALTON_BASES = (2, 3, 5, 7, 11)
 
 
 def _digit_by_digit(i: np.ndarray, base: int) -> np.ndarray:
+    """``radical_inverse`` one digit at a time (its tables)."""
     out = np.zeros(i.shape)
     scale = 1.0
     while i.any():
