@@ -73,8 +73,9 @@ SUBDIVIDED = [("teapot", 2), ("beetle-alt", 1), ("stanford-bunny", 1), ("rocker-
 SWEEP_SCENES = ["cow", "homer", "beetle-alt", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
 SWEEP_K = [1024, 2048, 4096, 8192, 16384, 32768, 65536]
 SWEEP_DENSITY = [0.5, 1.0, 2.0, 4.0, 8.0]
-#: the grid estimates compared: the plan's own (K-sample time x the calibration's ratio)
-#: and the paper's uncorrected time / K
+#: the grid estimates compared: the plan's own (the count model on the sample's work counts;
+#: K-sample time x the calibration's ratio for a calibration without one), the K-sample time
+#: x the ratio, and the paper's uncorrected time / K
 GRID_ESTIMATES = ("plan", "sample x ratio", "uncorrected")
 #: the scenes drawn in the time-against-rays figure
 TOTALS_PLOT = ["cow", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
@@ -323,8 +324,8 @@ def decide_model(models, current: str, default: str) -> tuple[str, str]:
     def loo(m):
         return models[m]["loo"]["median_abs"]
 
-    lines = ["Median absolute break-even error with the plan's grid estimate (K-sample time x the calibration's "
-             "ratio), evaluated meshes / leave-one-out on the calibration scenes: "
+    lines = ["Median absolute break-even error with the plan's grid estimate (the count model on the sample's "
+             "work counts), evaluated meshes / leave-one-out on the calibration scenes: "
              + ", ".join(f"{m} {fnum(err(m), 1, None)} / {fnum(loo(m), 1, None)}" for m in models) + "."]
     lines.append("With the uncorrected sample (time / K, the paper's method) instead, on the evaluated meshes: "
                  + ", ".join(f"{m} {fnum(err(m, 'uncorrected'), 1, None)}" for m in models) + ".")
@@ -633,8 +634,11 @@ def write_markdown(path: Path, R: dict):
         w(f"Sweep scenes: {', '.join(sw['scenes'])}; the grid's true time per ray on {fnum(meta['sweep_rays'])} rays "
           f"at each density; {meta['sweep_repeats']} estimate(s) per (scene, density, K), each a `core.plan` call on "
           f"that density's grid; cost = the estimate's time (K uniform samples, (i)) as % of that density's "
-          f"grid-only total at 1e6 rays. 'plan' is the plan's own estimate (K-sample time x the calibration's ratio "
-          f"for K); 'uncorrected' the same sample's time / K (the paper's method). The calibration measures the "
+          f"grid-only total at 1e6 rays. 'plan' is the plan's own estimate (the count model on the K sample rays' "
+          f"work counts); 'sample x ratio' the same sample's time x the calibration's ratio for K; 'uncorrected' "
+          f"its time / K (the paper's method). The truths here are one trace of {fnum(meta['sweep_rays'])} rays "
+          f"per density, outside the interleaved passes: a timed estimate follows the machine's state between the "
+          f"two, the count model does not. The calibration measures the "
           f"ratio at the default density; 'ratio' is the one the plan applied, 'measured' the true / sample ratio "
           f"the sweep found (median).\n")
         ests = tuple(e for e in GRID_ESTIMATES if e in sw["tables"])
@@ -1321,7 +1325,7 @@ def main(argv=None):
         tables = {est: sweep_table(sweep_rows, est) for est in GRID_ESTIMATES}
         picks = {est: choose_defaults(t) for est, t in tables.items()}
         pick = picks["plan"][0]
-        text = (f"With the plan's estimate ({cal.model} model, K-sample time x the calibration's ratio): "
+        text = (f"With the plan's estimate ({cal.model} build model, the count model's time per ray): "
                 f"{picks['plan'][1]}. With the uncorrected sample instead: {picks['uncorrected'][1]}. "
                 f"The plan's default is K = {DEFAULT_SAMPLES:,} at density 2 (`core.plan.DEFAULT_SAMPLES`)")
         if pick is not None:
