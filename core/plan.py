@@ -365,8 +365,9 @@ def plan_from_timings(
 
 
 def _sample_rays(mesh, rays, k, seed):
-    """K representative rays: a random subset of the user's rays, else the paper's uniform
-    ones, quasi-random (``rays.quasi_uniform_rays``: the counts' mean moves less between seeds).
+    """K representative rays: the user's rays, one from each of K equal blocks of them, else
+    the paper's uniform ones, quasi-random (``rays.quasi_uniform_rays``); either way the
+    counts' mean moves less between seeds than on independent rays.
 
     Returns (origins, directions, tmin, tmax, what, indices into the workload or None)."""
     from .rays import quasi_uniform_rays
@@ -384,8 +385,13 @@ def _sample_rays(mesh, rays, k, seed):
     tmin, tmax = (rays[2], rays[3]) if len(rays) == 4 else (0.0, np.inf)
     m = len(o)
     if k < m:
-        idx = np.sort(rng.choice(m, size=k, replace=False))
-        return o[idx], d[idx], _pick(tmin, idx, m), _pick(tmax, idx, m), "the given rays", idx
+        # one ray at random from each of K equal blocks of the workload: each ray is drawn
+        # with probability about K / M, as in a random subset, and a workload in an order (a
+        # camera's rows, a scanner's sweep) is covered evenly, so the counts' mean moves less
+        # between seeds (camera rays: the break-even's spread 1.6-6.9% -> 0.6-1.3%)
+        edges = (np.arange(k + 1, dtype=np.int64) * m) // k
+        idx = edges[:-1] + (rng.random(k) * np.diff(edges)).astype(np.int64)
+        return o[idx], d[idx], _pick(tmin, idx, m), _pick(tmax, idx, m), "the given rays, one from each of K blocks", idx
     return o, d, tmin, tmax, "the given rays (all of them)", np.arange(m)
 
 
@@ -407,7 +413,7 @@ def plan(
 
     calibration: from ``calibration.load_or_default``; None uses the shipped defaults.
     rays: the workload's own rays, (origins, directions[, tmin, tmax]); K of them are
-    sampled.  Without it K uniform rays (the paper's distribution, quasi-random) are used.
+    sampled, one from each of K equal blocks.  Without it K uniform rays (the paper's distribution, quasi-random) are used.
     grid: an already built grid over ``mesh`` to reuse (its build time is reported).
     grid_config / configs: build options for the grid / {kind: options} for the others.
     prior: skip the sample when ``expected_rays`` is below the calibration's floor on the

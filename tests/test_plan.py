@@ -16,8 +16,12 @@ from hybrid_raycast.core.decide import Calibration, KindFit
 from hybrid_raycast.core.hits import Hits
 from hybrid_raycast.core.mesh import TriangleMesh
 from hybrid_raycast.core.plan import plan, plan_from_timings, trace_online
-from hybrid_raycast.core.rays import uniform_rays
+from hybrid_raycast.core.rays import camera_rays, uniform_rays
 
+
+def core_camera(width, height):
+    """Primary rays of a camera looking at the unit sphere's scene, row-major."""
+    return camera_rays((0, -4, 0.5), (0, 0, 0), (0, 0, 1), 60.0, width, height)
 
 
 def cal_of(**fits) -> Calibration:
@@ -337,6 +341,23 @@ def test_trace_reuses_the_samples_drawn_from_the_workload():
     # copies are other arrays: everything is traced again
     _assert_same(p.trace(o.copy(), d.copy()), ref, "grid on copies")
     assert p.executed[-1]["rays"] == 900 and p.executed[-1]["reused"] == 0, p.executed
+
+
+def test_a_workloads_sample_takes_one_ray_from_each_of_k_equal_blocks():
+    """An ordered workload (here a camera's rows) is covered evenly: the sample holds one
+    ray of every block of M / K, a different one for another seed."""
+    mesh = scenes.sphere(2000)
+    o, d = core_camera(64, 48)
+    m, k = len(o), 300
+    picks = []
+    for seed in (0, 1):
+        p = plan(mesh, 1e6, cal_of(bvh=(1e-7, 1e-7)), rays=(o, d), samples=k, kinds=("grid", "bvh"), seed=seed)
+        idx = p.sample[2]
+        edges = (np.arange(k + 1) * m) // k
+        assert len(idx) == k and (idx >= edges[:-1]).all() and (idx < edges[1:]).all(), idx
+        assert any("one from each of K blocks" in n for n in p.notes)
+        picks.append(idx)
+    assert (picks[0] != picks[1]).any()
 
 
 def test_a_workload_of_at_most_k_rays_is_answered_while_planning_and_keeps_the_grid():
