@@ -413,7 +413,8 @@ def plan(
 
     calibration: from ``calibration.load_or_default``; None uses the shipped defaults.
     rays: the workload's own rays, (origins, directions[, tmin, tmax]); K of them are
-    sampled, one from each of K equal blocks.  Without it K uniform rays (the paper's distribution, quasi-random) are used.
+    sampled, one from each of K equal blocks.  Without it K uniform rays (the paper's
+    distribution, quasi-random) are used.
     grid: an already built grid over ``mesh`` to reuse (its build time is reported).
     grid_config / configs: build options for the grid / {kind: options} for the others.
     prior: skip the sample when ``expected_rays`` is below the calibration's floor on the

@@ -19,11 +19,6 @@ from hybrid_raycast.core.plan import plan, plan_from_timings, trace_online
 from hybrid_raycast.core.rays import camera_rays, uniform_rays
 
 
-def core_camera(width, height):
-    """Primary rays of a camera looking at the unit sphere's scene, row-major."""
-    return camera_rays((0, -4, 0.5), (0, 0, 0), (0, 0, 1), 60.0, width, height)
-
-
 def cal_of(**fits) -> Calibration:
     """A hand-made calibration: kind=(c_B, c_R) or kind=(c_B, c_R, c_B_low, c_B_high, c_R_low, c_R_high)."""
     out = {}
@@ -347,7 +342,7 @@ def test_a_workloads_sample_takes_one_ray_from_each_of_k_equal_blocks():
     """An ordered workload (here a camera's rows) is covered evenly: the sample holds one
     ray of every block of M / K, a different one for another seed."""
     mesh = scenes.sphere(2000)
-    o, d = core_camera(64, 48)
+    o, d = camera_rays((0, -4, 0.5), (0, 0, 0), (0, 0, 1), 60.0, 64, 48)  # row-major
     m, k = len(o), 300
     picks = []
     for seed in (0, 1):
