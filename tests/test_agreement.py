@@ -248,19 +248,28 @@ def test_load_obj_matches_trimesh_on_the_real_meshes(path):
     assert a.shape == b.shape and (a == b).all(), f"{path.name}: triangles differ from trimesh's"
 
 
-def test_uniform_rays_have_explicit_dtypes_fill_the_padded_box_and_cover_the_sphere():
+def _assert_papers_distribution(rays, mean_tol: float, moment_tol: float):
+    """Checks a generator of the paper's rays (``rays(bounds, m, seed=...)``) on a box flat
+    in y: float32 arrays, origins in the padded box (which has volume), unit directions
+    whose means and second moments are within the tolerances of the sphere's, and the
+    seed deciding the rays.  Returns the 20,000 rays of seed 5 and the box."""
     lo, hi = np.array([-1.0, 0.0, 2.0]), np.array([3.0, 0.0, 4.0])  # flat in y
-    o, d = core.uniform_rays((lo, hi), 20000, seed=5)
+    o, d = rays((lo, hi), 20000, seed=5)
     assert o.dtype == np.float32 and d.dtype == np.float32 and o.shape == d.shape == (20000, 3)
     pad = 0.01 * np.linalg.norm(hi - lo)
     assert (o >= lo - pad - 1e-5).all() and (o <= hi + pad + 1e-5).all()
     assert o[:, 1].max() - o[:, 1].min() > pad, "a flat box still gets padded volume"
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, atol=1e-6)
-    assert np.abs(d.mean(axis=0)).max() < 0.03, f"directions not uniform: mean {d.mean(axis=0)}"
-    assert np.abs((d ** 2).mean(axis=0) - 1 / 3).max() < 0.02
-    o2, d2 = core.uniform_rays((lo, hi), 20000, seed=5)
+    assert np.abs(d.mean(axis=0)).max() < mean_tol, f"directions not uniform: mean {d.mean(axis=0)}"
+    assert np.abs((d ** 2).mean(axis=0) - 1 / 3).max() < moment_tol
+    o2, d2 = rays((lo, hi), 20000, seed=5)
     assert (o == o2).all() and (d == d2).all(), "the same seed must give the same rays"
-    assert not (core.uniform_rays((lo, hi), 10, seed=6)[1] == d[:10]).all()
+    assert not (rays((lo, hi), 10, seed=6)[1] == d[:10]).all()
+    return o, d, (lo, hi)
+
+
+def test_uniform_rays_have_explicit_dtypes_fill_the_padded_box_and_cover_the_sphere():
+    _assert_papers_distribution(core.uniform_rays, 0.03, 0.02)
 
 
 def test_radical_inverse_mirrors_the_digits_about_the_radix_point():
@@ -281,18 +290,8 @@ def _hits_sphere(o, d, centre, radius):
 
 
 def test_quasi_uniform_rays_are_the_papers_distribution_and_their_means_move_less_between_seeds():
-    lo, hi = np.array([-1.0, 0.0, 2.0]), np.array([3.0, 0.0, 4.0])  # flat in y
-    o, d = core.quasi_uniform_rays((lo, hi), 20000, seed=5)
-    assert o.dtype == np.float32 and d.dtype == np.float32 and o.shape == d.shape == (20000, 3)
-    pad = 0.01 * np.linalg.norm(hi - lo)
-    assert (o >= lo - pad - 1e-5).all() and (o <= hi + pad + 1e-5).all()
-    assert o[:, 1].max() - o[:, 1].min() > pad
-    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, atol=1e-6)
-    assert np.abs(d.mean(axis=0)).max() < 0.01 and np.abs((d ** 2).mean(axis=0) - 1 / 3).max() < 0.01
+    o, d, (lo, hi) = _assert_papers_distribution(core.quasi_uniform_rays, 0.01, 0.01)
     np.testing.assert_allclose(o.mean(axis=0), (lo + hi) / 2, atol=0.01)
-    o2, d2 = core.quasi_uniform_rays((lo, hi), 20000, seed=5)
-    assert (o == o2).all() and (d == d2).all(), "the same seed must give the same rays"
-    assert not (core.quasi_uniform_rays((lo, hi), 10, seed=6)[1] == d[:10]).all()
     # the share of rays that meet a ball inside a unit box: the same mean as independent
     # rays, with a smaller spread over seeds (what a plan's break-even inherits)
     box, centre = (np.zeros(3), np.ones(3)), np.full(3, 0.5)
