@@ -18,16 +18,27 @@ ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
 # This machine's package (the real-Blender suite installs it).
 ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-fast test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan report clean
+.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan report docs clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
 	$(PY) scripts/demo.py --output out/demo
 
-## The tests (what CI runs).
-PYTEST_ARGS := -q -ra
+## The tests (the README's test command; a few minutes on 2 cores): everything but the tests marked slow.
+PYTEST_ARGS := -q -ra -m 'not slow'
 test: $(VENV)/.stamp wheels
 	$(PY) -m pytest $(PYTEST_ARGS)
+
+## The slow tests, CI's leg of their own: real calibrations, the report's end-to-end run, the zip
+## install round trips, pip install in a fresh venv.
+test-slow: $(VENV)/.stamp wheels
+	$(PY) -m pytest -q -ra -m slow
+
+## The API reference: pdoc (pinned in requirements-dev.txt) over the docstrings of api, core (every
+## submodule), operators.query and operators.scan; writes out/docs/api/index.html. Fails when pdoc cannot import a module.
+docs: $(VENV)/.stamp
+	rm -rf out/docs/api
+	$(PY) scripts/make_docs.py --output out/docs/api
 
 ## The version matrix: the same suite on each leg's bpy, in its own venv made from
 ## requirements/<leg>.txt (its '# python: X.Y' line names the interpreter); prints a table.
@@ -61,10 +72,6 @@ $(MATRIX_CACHE)/%/.stamp:
 ## The real-Blender suite: Blender 4.3.2 (Debian trixie rootfs), CLI and GUI; needs root, skips otherwise.
 real-blender: $(ZIPS)
 	tests/real_blender/run.sh $(ZIP) out/real_blender
-
-## The tests without the slower Blender install round-trip.
-test-fast: $(VENV)/.stamp
-	$(PY) -m pytest -q -ra -m "not slow"
 
 venv: $(VENV)/.stamp
 $(VENV)/.stamp: requirements-dev.txt requirements/test.txt

@@ -25,8 +25,9 @@ from .mesh import TriangleMesh
 #: fewest rays per chunk when a batch is split to give every thread a chunk.  The lockstep
 #: loops' last steps run on a handful of rays, where each numpy call is mostly Python
 #: overhead under the GIL, so two threads on two small chunks contend instead of overlapping:
-#: at 4,096 a K = 16,384 plan sample took 1.3-1.9x longer than on one thread (1M-triangle
-#: sphere, grid and BVH); from 65,536 rays a chunk the split no longer loses (BENCHMARKS.md)
+#: split into small chunks, a plan's sample took longer on two threads than on one; from
+#: this size on the split no longer loses (BENCHMARKS.md, "Measurement protocol and model
+#: terms" and "Tried and not kept")
 MIN_SPLIT = 1 << 16
 
 #: rays per chunk of the lockstep tracers (the numpy BVH and grid, ``chunk_size``).  Each

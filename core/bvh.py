@@ -87,8 +87,8 @@ class _Scratch:
 
     A level's temporaries are as long as the triangles it splits.  Allocated afresh at
     every level, glibc handed them back to the kernel and took them again, so a
-    1M-triangle build first-touched ~0.5 GB: ~125k page faults, a quarter of its time, and
-    a cost that moves with the machine's state (issue 14).  ``get(name, n)`` is a view of
+    1M-triangle build first-touched ~0.5 GB, a page fault every 4 KiB: a large share of its
+    time, and a cost that moves with the machine's state.  ``get(name, n)`` is a view of
     the first n items of the buffer called ``name``, made on first use at the ``capacity``
     the build needs at most; no two live temporaries share a name."""
 
@@ -514,7 +514,7 @@ class BVH(Accel):
       Morton bit instead of by SAH (faster build, more node visits per ray);
       ``batch=65536``: rays stepping in lockstep per thread (bounds the working set; bigger
       pools amortise the per-step numpy calls, which two threads contend for: BENCHMARKS.md,
-      issue 10);
+      "Threads: 1 -> 2 against the hardware's ceiling");
       plus ``threads`` and ``chunk_size`` of every structure (default 2**20 rays: the pool
       refills finished rays' slots in place, so it stays full until the chunk runs out and
       only the last steps of a chunk run on few rays; the threads trace every chunk
@@ -793,9 +793,9 @@ class BVH(Accel):
         (``widen(tlim)``), or is finished when there is none.
 
         The same result as popping again and again until an entry passes, but in one pass
-        over the stacks of all these rays at once: a loop of pops took about ten rounds a
+        over the stacks of all these rays at once: a loop of pops took several rounds a
         step, each a dozen numpy calls on a few hundred rays, which is per-call overhead
-        under the GIL (a quarter of the 2-thread traversal's GIL time, py-spy --gil).
+        under the GIL (a large share of the 2-thread traversal's GIL time, py-spy --gil).
         ``ptr[pop]`` is the slot just popped (depth * P + column; negative when the stack
         was empty), so the candidates are the depths below it in the ray's own column.
         """

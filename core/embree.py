@@ -5,9 +5,9 @@ embreex is optional: this module imports it only when a structure is built, and
 this wrapper does about it:
 
 - ``rtcore_scene.EmbreeScene(robust=True)`` sets Embree's RTC_SCENE_FLAG_ROBUST
-  (watertight traversal and intersection, at some speed: robust=False traces Suzanne's
-  camera rays 1.22x faster, Open3D's speed, but lets 10% of the rays from inside a closed
-  mesh leak, against < 5% robust; BENCHMARKS.md, issue 10 follow-up).  Open3D uses no
+  (watertight traversal and intersection, at some speed: robust=False traces faster, at
+  Open3D's speed, but lets more of the rays from inside a closed mesh leak than the 5%
+  bound allows, which robust mode keeps; BENCHMARKS.md, "Tried and not kept").  Open3D uses no
   scene flags, and also one ``rtcIntersect1`` per ray (no packets).
 - ``scene.run(origins_f32, dirs_f32, dists=None, query='INTERSECT', output=None)``
   traces one ray at a time (``rtcIntersect1``), but its loop over the rays runs inside
@@ -38,10 +38,11 @@ this wrapper does about it:
   threads are all hardware threads), scene flags other than ROBUST and packet or stream
   queries.  Its ``mesh_construction.TriangleMesh`` copies the arrays into Embree's
   buffers element by element through untyped (Python-level) indexing
-  (``_build_from_indices``): at 1.1M triangles 1.5-1.7 s, four times Embree's own BVH
+  (``_build_from_indices``): on a large mesh several times as long as Embree's own BVH
   build, and most of the build's scatter.  So the geometry is filled through Embree's C
   API instead (``_DirectFill``: ctypes on the Embree embreex's own calls reach, two
-  numpy copies into the buffers of ``rtcSetNewGeometryBuffer``; 10 ms there), on the
+  numpy copies into the buffers of ``rtcSetNewGeometryBuffer``, a small part of the
+  build; BENCHMARKS.md, "Trace speed: engine table"), on the
   scene embreex made, whose handle it reads from the scene object (the layout is
   checked, and Embree must confirm the handle, before anything is written).
   ``TriangleMesh`` remains the fallback when that check fails (another embreex layout,
@@ -153,7 +154,7 @@ class EmbreeAccel(Accel):
         self.fill = None
         if self.prim_to_triangle.size == 0:
             return
-        device = rtcore.EmbreeDevice()  # what EmbreeScene() makes itself; 0.01 ms
+        device = rtcore.EmbreeDevice()  # what EmbreeScene() makes itself; cheap next to a build
         self.scene = rtcore_scene.EmbreeScene(device, robust=self.robust)
         triangles = self.mesh.triangles if self._remap is None else self.mesh.triangles[self._remap]
         direct = self.direct_fill and _DirectFill.get()
@@ -180,7 +181,7 @@ class EmbreeAccel(Accel):
         pages for an allocation of 4 MiB or more (``madvise(MADV_HUGEPAGE)`` in numpy's
         ``alloc.c``; ``np.core.multiarray._get_madvise_hugepage()`` says whether it is on),
         which four separate (M,) arrays of 1M rays each just miss, so the output costs a few
-        page faults instead of one per 4 KiB (BENCHMARKS.md).  Keeping one of the arrays
+        page faults instead of one per 4 KiB.  Keeping one of the arrays
         keeps the whole block alive."""
         batch = self._batch(origins, directions, tmin, tmax)
         if batch is None:

@@ -30,3 +30,25 @@ def build(mesh: TriangleMesh, kind: str = "bvh", **config) -> Accel:
     else:
         raise ValueError(f"unknown structure kind {kind!r}; expected one of {', '.join(KINDS)}")
     return cls(mesh, **config)
+
+
+def unavailable_reason(kind: str) -> str | None:
+    """Why ``kind`` cannot be built here (one line), or None when it can."""
+    from . import embree
+
+    if kind == "embree" and not embree.embree_available():
+        why = getattr(embree, "embree_unavailable_reason", None)
+        return (why() if why is not None else None) or "embreex is not installed"
+    return None
+
+
+def available_kinds(kinds) -> tuple[tuple[str, ...], list[str]]:
+    """The kinds that can be built here, and a note for each one that cannot."""
+    keep, notes = [], []
+    for k in kinds:
+        why = unavailable_reason(k)
+        if why:
+            notes.append(f"{k} skipped: {why}")
+        else:
+            keep.append(k)
+    return tuple(keep), notes

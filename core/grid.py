@@ -155,17 +155,16 @@ class UniformGrid(Accel):
     Config (keyword arguments of ``core.build(mesh, 'grid', ...)``):
 
     ``density`` (lambda, default 2.0): cells per triangle in Cleary and Wyvill's rule.
-        Measured (single thread, CPU time, 100k uniform rays; torus and random soup):
-        at 100k triangles lambda 0.5/1/2/4/8 trace within noise of each other up to 2
-        and slower beyond (8 is 15-20% slower); at 1M triangles 2 traced fastest by
-        3-7% while 1 builds 20% faster.  The prefilter makes each reference cheap, which
-        pulls the optimum down (without it 4-8 were fastest).
+        On a torus and a random soup (single thread, uniform rays) the trace time is
+        flat in lambda up to 2 and grows beyond it; on large scenes 2 traces fastest
+        while 1 builds faster.  The prefilter makes each reference cheap, which pulls
+        the optimum down (without it larger lambdas were fastest).
     ``max_cells`` (default 2**24): memory bound on the cell count (cell_start is one
         int32 per cell, so 64 MB at the bound).
     ``margin`` (default 1e-3): each cell is enlarged by ``margin`` times the smallest
         cell extent when its references are chosen (the grid box is padded by twice
         that), so neither the kernel's float32 slack nor rounding here can hide a
-        triangle the kernel would report; it costs 1-2% more references.
+        triangle the kernel would report; it costs only a few more references.
     ``pair_cap`` (default 2**17): at most this many (ray, triangle) pairs per kernel
         call, and candidate (triangle, cell) pairs per overlap batch: bounds memory.
     ``prefilter`` (default True): before the kernel, drop pairs whose ray line misses
@@ -313,9 +312,9 @@ class UniformGrid(Accel):
         self.cell_tris = cell_tris.astype(np.int32, copy=False)
         # the triangles' boxes for _box_filter, one float32 row (lo xyz, hi xyz) per
         # reference in cell order: a cell's pairs read a few contiguous cache lines, not
-        # one line per triangle scattered over the mesh (1.06-1.17x the whole trace on the
-        # 1M-triangle scenes, issue 10); twice the bytes of per-triangle rows at ~2 refs
-        # per triangle
+        # one line per triangle scattered over the mesh, which speeds up the whole trace on
+        # large scenes (BENCHMARKS.md, "Trace speed: engine table"); twice the bytes of
+        # per-triangle rows at ~2 refs per triangle
         self._ref_box = tri_box.take(self.cell_tris, axis=0)
         self._starts = full[:-1]
         # one lookup per step tells what a ray's cell holds: its reference count (> 0), or

@@ -15,8 +15,12 @@ directions need not be normalised.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # hits.py is imported when a result is finished (see NearestHits.finish)
+    from .hits import Hits
 
 F32 = np.float32
 #: u, the unit roundoff of float32 (half its machine epsilon 2**-23): one correctly rounded
@@ -99,7 +103,7 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
     with np.errstate(over="ignore", invalid="ignore"):  # overflow to inf is reported below
         o32 = np.ascontiguousarray(o, dtype=F32)
         d32 = np.ascontiguousarray(d, dtype=F32)
-        # whole-array checks first (a row-wise reduce over 3 columns costs ~10x more); the
+        # whole-array checks first (a row-wise reduce over 3 columns costs far more); the
         # rows are found only to name them in the error
         for name, a in (("origins", o32), ("directions", d32)):
             if not np.isfinite(a).all():

@@ -1,19 +1,28 @@
 """The hybrid decision: grid or a hierarchical structure, for this scene and ray budget.
 
-Hapala, Karlik and Havran (2011), section 3 ("application"):
+Hapala, Karlik and Havran (2011), section 3 ("application"), as this module runs it:
   1. build the uniform grid, timed (T_B^G);
-  2. trace K representative rays through it: t_G, the grid's measured time per ray
-     (times the calibration's small-batch ratio: a K-ray batch pays the lockstep
-     traversal's fixed per-step cost over few rays, see ``Calibration.grid_sample_ratio``);
-  3. estimate each hierarchical structure H from the calibration:
-     T_B^H ~ c_B N log2 N and t_H ~ c_R log2 N;
+  2. trace K representative rays through it and take their work counts
+     (``decide.work.grid_work``: the cells each ray crosses, whether it hits, and the
+     grid traversal's own lockstep steps and candidate pairs);
+  3. estimate from those counts, with the calibration's count models
+     (``Calibration.count_per_ray``), the grid's time per ray t_G and each hierarchical
+     structure H's t_H, and H's build T_B^H from the calibration's fitted build model
+     (``Calibration.estimate``; by default 'terms': a sum of costs in N for the numpy BVH,
+     a quadratic in log-log for Embree, ``decide.cost``).  A structure without a count
+     model takes t_H from the fitted model too;
   4. the grid is built already (a sunk cost), so H pays for itself after
      R*_H = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise (R* = inf);
   5. keep the grid for R <= R*, else build and use H.
+A calibration without count models (files made before them) falls back on the sample's
+time: t_G is the K rays' measured time per ray times the calibration's small-batch ratio
+(a K-ray batch pays the lockstep traversal's fixed per-step cost over few rays, see
+``Calibration.grid_sample_ratio``), and each H's T_B^H and t_H come from the fitted model
+alone (the paper's T_B^H ~ c_B N log2 N and t_H ~ c_R log2 N, as ``decide.cost`` refines them).
 With several candidates (numpy BVH, Embree) the grid stays cheapest exactly while
 R <= min_H R*_H, and beyond that the candidate with the least T_B^H + R t_H wins.  The
 calibration's spread gives each R* an interval: R*_low uses the low constants (cheap
-build, fast rays) and the high end of the grid's corrected time, R*_high the opposite, so
+build, fast rays) and the high end of the grid's time per ray, R*_high the opposite, so
 R*_low <= R* <= R*_high.
 
 When the workload's own rays are given, the K sample rays are drawn from them and their
@@ -36,15 +45,15 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .accel import Accel
-from .factory import build
+from .factory import available_kinds, build, unavailable_reason
 from .decide.calfile import Calibration, load_default
-from .decide.cost import break_even
-from .decide.measurements import prepare_mesh, available_kinds, time_trace, unavailable_reason
+from .decide.cost import Cost, break_even
+from .decide.measurements import time_trace
 from .decide.rule import REUSES_SAMPLES, choose
 from .decide.work import DEFAULT_SAMPLES, grid_work, traversal_counts
 from .hits import Hits
@@ -70,39 +79,6 @@ def _json_float(x):
 
 
 @dataclass
-class Candidate:
-    """One structure's cost figures: measured for the grid, estimated for the others.
-
-    break_even*: rays after which this structure beats the (already built) grid; inf
-    when it never does; None for the grid itself.
-    """
-
-    kind: str
-    build_time: float
-    build_low: float
-    build_high: float
-    per_ray: float
-    per_ray_low: float
-    per_ray_high: float
-    measured: bool
-    break_even: float | None = None
-    break_even_low: float | None = None
-    break_even_high: float | None = None
-
-    def total_time(self, rays, bound: str = "point", include_build: bool = True):
-        """T_build + R t_ray with the point, 'low' or 'high' figures (R may be an array)."""
-        b, t = {"point": (self.build_time, self.per_ray), "low": (self.build_low, self.per_ray_low),
-                "high": (self.build_high, self.per_ray_high)}[bound]
-        return (b if include_build else 0.0) + np.asarray(rays, np.float64) * t
-
-    def to_dict(self) -> dict:
-        d = dict(self.__dict__)
-        for k in ("break_even", "break_even_low", "break_even_high"):
-            d[k] = _json_float(d[k])
-        return d
-
-
-@dataclass
 class Plan:
     """Everything the decision used and decided.  Times in seconds.
 
@@ -120,7 +96,7 @@ class Plan:
     samples: int
     grid_build_time: float
     grid_per_ray: float
-    candidates: dict[str, Candidate]
+    candidates: dict[str, Cost]
     break_even: float
     break_even_low: float
     break_even_high: float
@@ -128,6 +104,7 @@ class Plan:
     decision: str
     certain: bool
     #: the grid's time per ray on the K samples, and the small-batch ratio applied to it
+    #: (with count models, the ratio of their estimate to the sample's time)
     grid_sample_per_ray: float = 0.0
     grid_sample_ratio: float = 1.0
     #: the grid sample's per-ray work counts (``decide.work.Work`` as a dict) when the
@@ -317,8 +294,8 @@ def plan_from_timings(
     n = int(triangles)
     g_lo = grid_per_ray if grid_per_ray_low is None else min(grid_per_ray_low, grid_per_ray)
     g_hi = grid_per_ray if grid_per_ray_high is None else max(grid_per_ray_high, grid_per_ray)
-    cands = {"grid": Candidate("grid", grid_build_time, grid_build_time, grid_build_time,
-                               grid_per_ray, g_lo, g_hi, measured=True)}
+    cands = {"grid": Cost("grid", grid_build_time, grid_build_time, grid_build_time, grid_per_ray, g_lo, g_hi,
+                          measured=True)}
     for kind in kinds:
         if kind == "grid":
             continue
@@ -330,9 +307,8 @@ def plan_from_timings(
         e = calibration.estimate(kind, n)
         if per_ray and kind in per_ray:
             e.per_ray, e.per_ray_low, e.per_ray_high = per_ray[kind]
-        cands[kind] = Candidate(
-            kind, e.build, e.build_low, e.build_high, e.per_ray, e.per_ray_low, e.per_ray_high, measured=False,
-            break_even=break_even(e.build, grid_per_ray, e.per_ray),
+        cands[kind] = replace(
+            e, measured=False, break_even=break_even(e.build_time, grid_per_ray, e.per_ray),
             # the low end: cheap build, fast rays, a slow grid; the high end: the opposite
             break_even_low=break_even(e.build_low, g_hi, e.per_ray_low),
             break_even_high=break_even(e.build_high, g_lo, e.per_ray_high),
@@ -351,7 +327,7 @@ def plan_from_timings(
     answered = max(0, int(answered))
     if answered and r <= answered:
         notes.append(f"all {r:,.0f} rays were answered by the grid while planning")
-    decision = str(choose(r, grid_per_ray, {c.kind: (c.build_time, c.per_ray) for c in hds}, answered, floor)[0])
+    decision = str(choose(r, grid_per_ray, {c.kind: c for c in hds}, answered, floor)[0])
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
@@ -388,7 +364,8 @@ def _sample_rays(mesh, rays, k, seed):
         # one ray at random from each of K equal blocks of the workload: each ray is drawn
         # with probability about K / M, as in a random subset, and a workload in an order (a
         # camera's rows, a scanner's sweep) is covered evenly, so the counts' mean moves less
-        # between seeds (camera rays: the break-even's spread 1.6-6.9% -> 0.6-1.3%)
+        # between seeds (on camera rays, much less than on a random subset: BENCHMARKS.md,
+        # "Calibration and plan repeatability")
         edges = (np.arange(k + 1, dtype=np.int64) * m) // k
         idx = edges[:-1] + (rng.random(k) * np.diff(edges)).astype(np.int64)
         return o[idx], d[idx], _pick(tmin, idx, m), _pick(tmax, idx, m), "the given rays, one from each of K blocks", idx
@@ -411,7 +388,7 @@ def plan(
 ) -> Plan:
     """Build (or reuse) the grid, time K sample rays through it, and decide.
 
-    calibration: from ``calibration.load_or_default``; None uses the shipped defaults.
+    calibration: from ``decide.load_or_default``; None uses the shipped defaults.
     rays: the workload's own rays, (origins, directions[, tmin, tmax]); K of them are
     sampled, one from each of K equal blocks.  Without it K uniform rays (the paper's
     distribution, quasi-random) are used.
@@ -432,7 +409,7 @@ def plan(
     kinds, skipped = available_kinds(kinds)
     notes += skipped
     k = max(1, int(samples))
-    prepare_mesh(mesh)
+    mesh.prepare()
     if grid is None:
         grid = build(mesh, "grid", **(grid_config or {}))
         reused = False
@@ -543,8 +520,8 @@ def ski_rental(grid_time: float, grid_rays: int, estimate) -> str:
     accumulated trace time reaches the structure's estimated build time (Karlin et al.
     1988: never worse than about twice the best fixed choice), 'never' when the estimate
     is not faster per ray than the grid has measured (building could never pay),
-    'wait' otherwise.  ``estimate`` is a ``calibration.Estimate`` or None (no constants)."""
-    if estimate is None or grid_time < estimate.build:
+    'wait' otherwise.  ``estimate`` is a ``decide.cost.Cost`` or None (no constants)."""
+    if estimate is None or grid_time < estimate.build_time:
         return "wait" if estimate is not None else "never"
     if grid_rays <= 0 or estimate.per_ray >= grid_time / grid_rays:
         return "never"
@@ -582,7 +559,7 @@ def trace_online(
         calibration = load_default()
     t_start = clock()
     est = calibration.estimate(kind, mesh.triangle_count) if kind in calibration.fits else None
-    rec = OnlineRecord(kind, m, batch, est.build if est else math.inf)
+    rec = OnlineRecord(kind, m, batch, est.build_time if est else math.inf)
     if est is None:
         rec.note = f"no calibration constants for {kind!r}: the grid traces everything"
     elif kind == "embree" and not available_kinds(("embree",))[0]:

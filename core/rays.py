@@ -86,9 +86,9 @@ def radical_inverse(i, base: int) -> np.ndarray:
     """The van der Corput sequence: the base-``base`` digits of the non-negative integers
     ``i`` mirrored about the radix point, as float64 in [0, 1) (3 in base 2 is 0.11 = 0.75).
 
-    Mirrors j digits at a time from a table of the first ``base ** j`` <= 4,096 values, a
-    fifth of the numpy calls of one digit at a time (which made ``quasi_uniform_rays`` cost
-    6x ``uniform_rays``)."""
+    Mirrors j digits at a time from a table of the first ``base ** j`` <= 4,096 values, far
+    fewer numpy calls than one digit at a time (which made ``quasi_uniform_rays`` cost
+    several times ``uniform_rays``)."""
     i = np.array(i, np.int64)
     if (i < 0).any():
         raise ValueError("radical_inverse takes non-negative integers")
@@ -117,9 +117,8 @@ def quasi_uniform_rays(mesh_or_bounds, m: int, seed=0, pad: float = 0.01):
     uniform, so a mean over the rays estimates the paper's mean without bias; the rays
     cover the box and the sphere more evenly than independent ones, so the mean of K of
     them moves less between seeds.  A plan's sample rays (``core.plan``), whose counts'
-    spread is the break-even's: on the real meshes of ../shared/scenes the break-even's
-    standard deviation between seeds fell from 5.9% to 4.4% (median) at 8,192 rays
-    (BENCHMARKS.md, "Quasi-random sample rays").
+    spread is the break-even's: on real meshes the break-even moves less between seeds
+    than on independent uniform rays (BENCHMARKS.md, "Calibration and plan repeatability").
     """
     rng = _rng(seed)
     lo, hi = padded_bounds(mesh_or_bounds, pad)

@@ -15,7 +15,6 @@ import time
 from datetime import datetime
 
 import bpy
-import numpy as np
 
 from .. import core
 from ..budget import ray_budget

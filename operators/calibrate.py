@@ -83,7 +83,7 @@ def apply_calibration(scene, result) -> list[tuple[str, str]]:
     if "embree" not in result["kinds"]:
         msgs.insert(0, ("WARNING", "embreex cannot be imported here: calibrated the BVH only"))
     # other programs kept the CPU busy through the retakes: the constants may be slow
-    msgs += [("WARNING", n) for n in cal.notes if n.endswith(core.decide.measurements.BUSY_ADVICE)]
+    msgs += [("WARNING", n) for n in cal.notes if n.endswith(core.decide.load_watch.BUSY_ADVICE)]
     if scene is not None and getattr(scene, "hybrid_raycast", None) is not None and scene.hybrid_raycast.has_results:
         msgs.append(("INFO", "run Analyze again to decide with the new constants"))
     return msgs

@@ -59,7 +59,7 @@ names one mesh for the whole walk); all placements' matrices come from one
 during its iteration step, hence indices rather than kept references); each mesh is
 transformed by all its placements in one batched float32 matmul into a preallocated
 output. Triangles of triangle/quad meshes are built in numpy (see ``mesh_triangles``),
-about twice as fast as ``loop_triangles.foreach_get``.
+faster than ``loop_triangles.foreach_get``.
 """
 
 from __future__ import annotations
@@ -100,8 +100,8 @@ def mesh_triangles(me) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(positions (V,3) float32, triangles (T,3) int32, polygon (T,) int32) of a Mesh.
 
     The triangles are Blender's loop triangles (``corner_tris``), in Blender's order.
-    For meshes of triangles and quads they are computed here from raw arrays (about twice
-    as fast as ``loop_triangles.foreach_get``) with the rule of Blender's
+    For meshes of triangles and quads they are computed here from raw arrays (faster
+    than ``loop_triangles.foreach_get``) with the rule of Blender's
     ``mesh_tessellate.cc``: a quad is cut on its 0-2 diagonal unless that diagonal lies
     outside it, then on 1-3. Blender decides that with one of two tests, depending on
     whether the mesh's face normals were cached when it tessellated; both are evaluated

@@ -8,7 +8,7 @@ scale is ignored: ranges stay in metres).  Use an Empty or a Camera: a mesh sens
 start inside it and see it.
 
 - ``scan(sensor_object, *, frame=None, space='WORLD')`` (re-exported as ``api.scan``):
-  one frame as arrays (``ScanResult``), cast through ``api.cast`` (the session cache of
+  one frame as arrays (``ScanResult``), cast through ``query.cast`` (``api.cast``: the session cache of
   ``operators/session.py``, the structure the plan picks).
 - ``scan_job``: a frame range, one file per frame (``core.pointcloud``: PLY, LAS, npz,
   each written atomically), for the Scan operator (modal with progress and Esc in the
@@ -31,7 +31,7 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from ..core import pointcloud, sensors
-from . import session
+from . import query, session
 from .jobs import BadInput, Job, JobOperator, Unwritable, writable_dir
 
 SPACES = ("WORLD", "SENSOR")
@@ -219,8 +219,6 @@ def _frame_time(scene, frame):
 
 def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -> ScanResult:
     """One scan of the depsgraph's scene as it is evaluated now; ``structure`` as ``api.cast``."""
-    from .. import api
-
     if space not in SPACES:
         raise ValueError(f"space must be 'WORLD' or 'SENSOR', got {space!r}")
     scene = depsgraph.scene
@@ -229,7 +227,7 @@ def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -
     origin, rot = pose[:3, 3], pose[:3, :3]
     pat = model.pattern()
     d = pat.directions @ rot.T
-    r = api.cast(origin, d, depsgraph=depsgraph, tmax=model.range_max, structure=structure)
+    r = query.cast(origin, d, depsgraph=depsgraph, tmax=model.range_max, structure=structure)
     frame = scene.frame_current
     with np.errstate(invalid="ignore"):
         cos = np.abs(np.einsum("ij,ij->i", r.normals.astype(np.float64), d))

@@ -20,7 +20,8 @@ The fingerprint is:
   instancing; and per layer collection its exclude, viewport and render flags.
 Geometry-nodes and particle instances are not listed one by one: they are part of their
 instancer's evaluation, whose data gets a new ``session_uid`` when they change.  Its cost
-is a few microseconds per object, whatever the number of instances (BENCHMARKS.md).
+is small per object and does not grow with the number of instances (BENCHMARKS.md,
+"Script API per call").
 
 The sidebar's stale flag uses the same fingerprint: the analysis remembers the body it
 was made on, and ``on_depsgraph_update`` (on ``depsgraph_update_post`` and
@@ -210,7 +211,7 @@ class Session:
         k = (kind, tuple(sorted(config.items())))
         acc = self.structures.get(k)
         if acc is None:
-            core.decide.prepare_mesh(self.mesh)
+            self.mesh.prepare()
             acc = self.structures[k] = core.build(self.mesh, kind, **config)
         return acc
 
@@ -267,7 +268,7 @@ class Session:
         best = min(ests, key=lambda e: (e.per_ray, e.kind))
         p = self.plan
         if self.grid_rays + m > p.break_even and p.break_even_kind is not None:
-            self.chosen = min(ests, key=lambda e: (e.build + (self.grid_rays + m) * e.per_ray, e.kind)).kind
+            self.chosen = min(ests, key=lambda e: (e.build_time + (self.grid_rays + m) * e.per_ray, e.kind)).kind
         elif core.ski_rental(self.grid_time, self.grid_rays, best) == "switch":
             self.chosen = best.kind
 

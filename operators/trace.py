@@ -25,10 +25,10 @@ from .jobs import BadInput, Job, JobOperator
 
 WORKLOADS = ("CAMERA", "AO")
 #: rays per step of the job (progress and Esc between steps).  Every call ends in lockstep
-#: steps over its last rays and pays its set-up once: 1M random rays on the Stanford bunny
-#: in calls of 65,536 took 1.94x (grid), 1.72x (BVH) and 2.26x (Embree) as long as in one
-#: call of 1,048,576, in calls of 262,144 1.32x, 1.12x and 1.10x (scratch/chunks.py,
-#: 2026-12-02).  262,144 keeps a step near a second on a 1M-triangle scene's grid
+#: steps over its last rays and pays its set-up once, so many small calls cost markedly
+#: more than one large call of the same rays, on every structure.  This size keeps that
+#: overhead small while a step on a large scene's grid stays short enough for progress and
+#: Esc to answer promptly
 CHUNK = 1 << 18
 
 

@@ -50,7 +50,7 @@ core_package()
 
 import bench_trace  # noqa: E402
 from hybrid_raycast import core  # noqa: E402
-from hybrid_raycast.core.decide.measurements import unavailable_reason  # noqa: E402
+from hybrid_raycast.core.factory import unavailable_reason  # noqa: E402
 
 GOAL = 1.7
 #: the structures worth a 1M-ray trace (brute force is not)

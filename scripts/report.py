@@ -31,6 +31,11 @@ check that the pipeline runs, not a measurement.
 
 matplotlib is needed for the plots only (requirements-dev.txt); without it the JSON and
 Markdown are still written and the Markdown says the plots are missing.
+
+The measuring and the arithmetic are ``core.decide.evaluate``'s (``measure_truths``,
+``measure_scene``, ``sweep_scene``, ``summarise``, ``model_comparison``, ...); this script
+holds the command's arguments and calibration files, the headline's rows, the JSON, the
+Markdown and the plots.
 """
 
 from __future__ import annotations
@@ -42,7 +47,6 @@ import json
 import math
 import os
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -54,16 +58,15 @@ from _package import ROOT, SHARED_SCENES, core_package  # noqa: E402
 
 core_package()
 
-from hybrid_raycast.core import build, load_obj, scenes as scene_lib  # noqa: E402
-from hybrid_raycast.core.decide import evaluate as rep  # noqa: E402
-from hybrid_raycast.core.decide import cost as calib  # noqa: E402
+from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
+from hybrid_raycast.core.decide import cost, evaluate  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
-    CALIBRATION_FORMAT, MODELS, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, available_kinds, calibrate,
-    break_even_jobs, load, measure_break_evens, time_trace, warm_up,
+    CALIBRATION_FORMAT, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, calibrate, load, warm_up,
 )
+from hybrid_raycast.core.decide.evaluate import GRID_ESTIMATES, fnum  # noqa: E402
 from hybrid_raycast.core.decide.measurements import CALIBRATION_REPEATS, ONE_THREAD  # noqa: E402
-from hybrid_raycast.core.plan import DEFAULT_SAMPLES, plan  # noqa: E402
-from hybrid_raycast.core.rays import uniform_rays  # noqa: E402
+from hybrid_raycast.core.factory import available_kinds  # noqa: E402
+from hybrid_raycast.core.plan import DEFAULT_SAMPLES  # noqa: E402
 
 
 #: larger versions of the real meshes: (mesh, subdivision levels); each level is 4x the triangles
@@ -73,10 +76,6 @@ SUBDIVIDED = [("teapot", 2), ("beetle-alt", 1), ("stanford-bunny", 1), ("rocker-
 SWEEP_SCENES = ["cow", "homer", "beetle-alt", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
 SWEEP_K = [1024, 2048, 4096, 8192, 16384, 32768, 65536]
 SWEEP_DENSITY = [0.5, 1.0, 2.0, 4.0, 8.0]
-#: the grid estimates compared: the plan's own (the count model on the sample's work counts;
-#: K-sample time x the calibration's ratio for a calibration without one), the K-sample time
-#: x the ratio, and the paper's uncorrected time / K
-GRID_ESTIMATES = ("plan", "sample x ratio", "uncorrected")
 #: the scenes drawn in the time-against-rays figure
 TOTALS_PLOT = ["cow", "stanford-bunny", "beetle-alt-x16", "stanford-bunny-x16"]
 
@@ -136,215 +135,6 @@ def real_scenes(folder: Path, max_triangles: int):
     return [(name, group, make) for _, name, group, make in sorted(sized, key=lambda x: (x[0], x[1]))]
 
 
-# -- measuring -------------------------------------------------------------------------------------
-
-def timed_build(mesh, kind, repeats, **config):
-    """Build ``repeats`` times; the last structure and the median build time."""
-    times, acc = [], None
-    for _ in range(max(1, repeats)):
-        acc = None
-        acc = build(mesh, kind, **config)
-        times.append(acc.build_time)
-    return acc, float(statistics.median(times))
-
-
-def truth_jobs(meshes, args, kinds, passes):
-    """``measure_truths``' jobs (``break_even_jobs``), to run in a calibration's ``passes``."""
-    return break_even_jobs([(mesh, args.rays) for mesh in meshes], ("grid",) + tuple(kinds), seed=args.seed,
-                           passes=passes, progress=lambda f, msg: log(f"  truths: {msg}"))
-
-
-def measure_truths(meshes, args, kinds):
-    """One BreakEven per mesh, measured in ``args.repeats`` passes over all the scenes
-    (``measure_break_evens``), as the calibration measures its own, so that a slow minute of
-    the machine falls on every scene alike and not on the few measured in it."""
-    return measure_break_evens([(mesh, args.rays) for mesh in meshes], ("grid",) + tuple(kinds), repeats=args.repeats,
-                               quiet=quiet_share(args), seed=args.seed, progress=lambda f, msg: log(f"  truths: {msg}"))
-
-
-def measure_scene(name, group, mesh, cal, args, kinds, be=None):
-    """The plan's estimate against the true costs ``be`` (``measure_truths``; measured here
-    when None): one SceneResult (+ the rays, the grid and the structures).
-
-    The plan runs as the add-on runs it: once with K uniform samples (its decision and
-    estimates are the SceneResult's), and once given the workload's rays, for what the
-    estimate costs when its samples are K of them (``reuse_estimate_time``)."""
-    n = mesh.triangle_count
-    if be is None:
-        be = measure_truths([mesh], args, kinds)[0]
-    o, d = uniform_rays(mesh, args.rays, seed=args.seed)  # the rays the truths traced
-    grid, structs = be.structures["grid"], {k: be.structures[k] for k in kinds}
-    g_build, g_time = be.measurements["grid"].build_time, be.measurements["grid"].trace_time
-    measured = {k: rep.Cost(be.measurements[k].build_time, be.measurements[k].per_ray) for k in kinds}
-    rc_halves = be.R_C_repeats
-    candidates = ("grid",) + tuple(kinds)
-    p = plan(mesh, rep.COST_AT, cal, samples=args.samples, kinds=candidates, seed=args.seed + 1)
-    pw = plan(mesh, rep.COST_AT, cal, rays=(o, d), samples=args.samples, grid=p.grid, kinds=candidates, seed=args.seed + 2)
-    est = {k: rep.Cost(c.build_time, c.per_ray) for k, c in p.candidates.items() if k != "grid"}
-    ratio, lo, hi = cal.grid_sample_ratio(p.samples)
-    # the same plan again with other sample rays: how far the estimate moves between runs
-    again = [plan(mesh, rep.COST_AT, cal, samples=args.samples, grid=p.grid, kinds=candidates, seed=args.seed + 10 + r)
-             for r in range(args.plan_repeats - 1)]
-    s = rep.SceneResult(
-        name, n, len(o), rep.Cost(g_build, g_time / len(o)), measured, est, p.grid_per_ray, p.estimate_time,
-        p.samples, group, grid_sample_per_ray=p.grid_sample_per_ray, reuse_estimate_time=pw.estimate_time,
-        # the hybrid the evaluation runs decides between the grid and the numpy BVH: its floor
-        floor=cal.break_even_floor(n, ("bvh",)),
-        extra={"plan_grid_build": p.grid_build_time, "grid_resolution": [int(x) for x in getattr(grid, "res", [])],
-               "plan_break_even": {k: c.break_even for k, c in p.candidates.items() if k != "grid"},
-               "break_even_low": p.candidates["bvh"].break_even_low, "break_even_high": p.candidates["bvh"].break_even_high,
-               "grid_sample_ratio": [p.grid_sample_ratio, lo, hi], "R_C_repeats": rc_halves,
-               "R_C_repeatability": {k: be.repeatability(k) for k in kinds},
-               "work": p.work, "plan_repeats": {k: [q.candidates[k].break_even for q in [p] + again] for k in kinds},
-               "previous_estimate": {"grid_per_ray": p.grid_sample_per_ray * ratio,
-                                     **{k: cal.estimate(k, n).per_ray for k in kinds}},
-               "reuse_plan": {"workload_samples": pw.workload_samples, "break_even": pw.candidates["bvh"].break_even,
-                              "grid_per_ray": pw.grid_per_ray, "estimate_time": pw.estimate_time},
-               "threads": {"grid": grid.threads, **{k: a.threads for k, a in structs.items()}},
-               "build_parallelism": {k: [m.build_parallelism for m in be.runs[k]] for k in kinds},
-               "measurement_notes": be.notes},
-    )
-    return s, (o, d), grid, structs
-
-
-def sweep_scene(s: rep.SceneResult, mesh, rays, cal, args, bvh):
-    """Speed against error on one scene: every (density, K, repeat), the plan's grid
-    estimate and the uncorrected one."""
-    o, d = rays[0][: args.sweep_rays], rays[1][: args.sweep_rays]
-    h = s.measured["bvh"]
-    rows, batch_rows = [], []
-    for density in args.sweep_density:
-        grid, g_build = timed_build(mesh, "grid", 3, density=density)
-        _, g_time = time_trace(grid, o, d)
-        t_g = g_time / len(o)
-        r_c = rep.break_even(h.build, t_g, h.per_ray)
-        total = g_build + rep.COST_AT * t_g
-        for k in args.sweep_k:
-            for r in range(args.sweep_repeats):
-                p = plan(mesh, rep.COST_AT, cal, samples=k, grid=grid, kinds=("grid", "bvh"), seed=1000 * r + k)
-                e = p.candidates["bvh"]
-                row = {"scene": s.name, "triangles": s.triangles, "density": density, "K": k, "repeat": r,
-                       "grid_build": g_build, "grid_per_ray": t_g, "R_C": r_c, "ratio": p.grid_sample_ratio,
-                       "measured_ratio": t_g / p.grid_sample_per_ray if p.grid_sample_per_ray > 0 else math.nan}
-                row["calibration_ratio"] = cal.grid_sample_ratio(p.samples)[0]
-                per = {"plan": p.grid_per_ray, "sample x ratio": p.grid_sample_per_ray * row["calibration_ratio"],
-                       "uncorrected": p.grid_sample_per_ray}
-                for name, per_ray in per.items():
-                    r_est = rep.break_even(e.build_time, per_ray, e.per_ray)
-                    row[name] = {"per_ray": per_ray, "R_est": r_est, "error": rep.relative_error(r_est, r_c),
-                                 "cost": p.estimate_time, "cost_pct": 100 * p.estimate_time / total}
-                rows.append(row)
-                if density == 2.0 and r == 0:
-                    so, sd = uniform_rays(mesh, k, seed=2000 * r + k + 7)
-                    _, tb = time_trace(bvh, so, sd)
-                    batch_rows.append({"scene": s.name, "K": k, "grid": p.grid_sample_per_ray, "bvh": tb / k})
-        log(f"  sweep {s.name}: density {density:g}, grid {t_g * 1e6:.2f} us/ray, R_C {r_c:,.0f}")
-        del grid
-    batch_rows.append({"scene": s.name, "K": s.rays, "grid": s.grid.per_ray, "bvh": h.per_ray})
-    return rows, batch_rows
-
-
-def grid_sample_ratios(cal: Calibration, ks):
-    """The grid's small-batch ratio as the calibration holds it (large-workload time per ray
-    / time per ray on K sample rays, measured on the calibration scenes, never the
-    evaluated ones): per scene at each measured K, and interpolated at every K in ``ks``."""
-    ladder = sorted({k for r in cal.scenes for k in r.grid_samples})
-    rows = [{"scene": r.name, "triangles": r.triangles, "true": r.kinds["grid"].per_ray,
-             "sample": dict(r.grid_samples), "ratio": {k: r.grid_sample_ratio(k) for k in ladder}}
-            for r in cal.scenes if "grid" in r.kinds]
-    ratios = {}
-    for k in ks:
-        med, lo, hi = cal.grid_sample_ratio(k)
-        ratios[k] = {"median": med, "low": lo, "high": hi, "measured": k in ladder}
-    log("  grid sample ratio (large workload / K-sample time per ray) from the calibration: "
-        + ", ".join(f"K={k}: {v['median']:.2f} [{v['low']:.2f}, {v['high']:.2f}]" for k, v in ratios.items()))
-    return {"scale": cal.scale, "rays": cal.rays_per_scene, "ladder": ladder, "spread": list(cal.spread),
-            "ratios": ratios, "scenes": rows}
-
-
-def grid_estimators(s: rep.SceneResult):
-    """The evaluated grid estimators for one scene: name -> SceneResult with that estimate.
-
-    'plan' is the SceneResult as measured (the plan's own estimate: the count model when
-    the calibration holds one); 'sample x ratio' the estimator before issue 14 (the K-sample
-    time x the calibration's ratio, a + c log2 N per ray for the structures); 'uncorrected'
-    the raw K-sample time (the paper's time / K), never corrected again."""
-    prev = s.extra.get("previous_estimate") or {}
-    before = dataclasses.replace(rep.with_grid_estimate(s, prev.get("grid_per_ray", s.grid_estimate_per_ray)), estimated={
-        k: rep.Cost(c.build, prev.get(k, c.per_ray)) for k, c in s.estimated.items()})
-    return {"plan": s, "sample x ratio": before, "uncorrected": rep.with_grid_estimate(s, s.grid_sample_per_ray)}
-
-
-# -- calibration model candidates --------------------------------------------------------------------
-
-def model_comparison(scenes, cal: Calibration):
-    """Held-out break-even error of each calibration model with each grid estimate."""
-    out = {}
-    names = list(dict.fromkeys(list(MODELS) + list(rep.CANDIDATE_MODELS)))
-    for m in names:
-        loo = rep.loo_break_even_errors(cal.scenes, "bvh", m)
-        held = [rep.reestimate(s, cal.scenes, m, keep_per_ray=bool(cal.counts)) for s in scenes]
-        comps = [rep.error_components(s) for s in held]
-        entry = {
-            "loo": rep.error_summary([x["error"] for x in loo]), "loo_scenes": loo,
-            "loo_never": rep.never_agreement([(x["R_est"], x["R_C"]) for x in loo]),
-            "loo_build_mabs": median_abs([x["build_error"] for x in loo]),
-            "loo_per_ray_mabs": median_abs([x["per_ray_error"] for x in loo]),
-            "held_out_build_mabs": median_abs([c["build"] for c in comps]),
-            "held_out_per_ray_mabs": median_abs([c["per_ray"] for c in comps]),
-            "grid": {},
-        }
-        for est_name in GRID_ESTIMATES:
-            variant = [grid_estimators(s)[est_name] for s in held]
-            errs = [rep.relative_error(rep.estimated_break_even(s), rep.true_break_even(s)) for s in variant]
-            sp = rep.speedup_summary(variant)
-            entry["grid"][est_name] = {
-                "held_out": rep.error_summary(errs), "errors": {s.name: e for s, e in zip(variant, errs)},
-                "never": rep.never_agreement([(rep.estimated_break_even(s), rep.true_break_even(s)) for s in variant]),
-                "picks": rep.pick_accuracy(variant),
-                "hybrid_over_oracle": sp.get("hybrid_over_oracle", {}).get("median", math.nan),
-                "hybrid_reuse_over_oracle": sp.get("hybrid_reuse_over_oracle", {}).get("median", math.nan),
-            }
-        out[m] = entry
-    return out
-
-
-def median_abs(values) -> float:
-    """Median of the finite absolute values (NaN when there are none)."""
-    return median_finite([abs(x) for x in values if x is not None])
-
-
-def decide_model(models, current: str, default: str) -> tuple[str, str]:
-    """(model, text): under the plan's own grid estimate, the model with the lowest held-out
-    break-even error on the evaluated meshes among those that do not worsen the paper's
-    leave-one-out error on the calibration scenes (the paper's model when none beats it)."""
-    def err(m, g="plan"):
-        return models[m]["grid"][g]["held_out"]["median_abs"]
-
-    def loo(m):
-        return models[m]["loo"]["median_abs"]
-
-    lines = ["Median absolute break-even error with the plan's grid estimate (the count model on the sample's "
-             "work counts), evaluated meshes / leave-one-out on the calibration scenes: "
-             + ", ".join(f"{m} {fnum(err(m), 1, None)} / {fnum(loo(m), 1, None)}" for m in models) + "."]
-    lines.append("With the uncorrected sample (time / K, the paper's method) instead, on the evaluated meshes: "
-                 + ", ".join(f"{m} {fnum(err(m, 'uncorrected'), 1, None)}" for m in models) + ".")
-    ok = [m for m in models if m != "paper" and math.isfinite(err(m)) and err(m) < err("paper")
-          and loo(m) <= loo("paper")]
-    best = min(ok, key=err) if ok else "paper"
-    if ok:
-        lines.append(f"Lowest held-out error without a worse leave-one-out error than the paper's: **{best}**.")
-    else:
-        lines.append("No model cuts the paper's error on the evaluated meshes without a worse leave-one-out error: "
-                     "**paper**.")
-    where = f"the calibration used here is fitted with '{current}'" + ("" if current == default else
-                                                                       f" (the package default is '{default}')")
-    lines.append(f"`core.decide.DEFAULT_MODEL` is '{default}'; {where}; "
-                 + ("the evaluation agrees with the default." if best == default else
-                    f"the evaluation favours '{best}' over it."))
-    return best, " ".join(lines)
-
-
 # -- writing -----------------------------------------------------------------------------------------
 
 def jsonable(x):
@@ -361,59 +151,6 @@ def jsonable(x):
     if isinstance(x, (np.integer,)):
         return int(x)
     return x
-
-
-def fnum(x, digits=0, pct=False):
-    """A number for the Markdown: pct False plain, True a signed percentage, None a bare
-    percentage; None and NaN are 'n/a', an infinite count 'never'."""
-    if x is None or (isinstance(x, float) and math.isnan(x)):
-        return "n/a"
-    if isinstance(x, float) and math.isinf(x):
-        if pct is not False:
-            return "inf%" if x > 0 else "-inf%"
-        return "never" if x > 0 else "-inf"
-    if pct is None:  # a bare percentage, no sign
-        return f"{x:,.{digits}f}%"
-    s = f"{x:+,.{digits}f}" if pct else f"{x:,.{digits}f}"
-    return s + ("%" if pct else "")
-
-
-def sweep_table(rows, estimator):
-    """Median |error| and median cost per (density, K) over the sweep scenes and repeats,
-    with the calibration's ratio at K and the ratio the sweep measured (true / sample)."""
-    cells = {}
-    for r in rows:
-        cells.setdefault((r["density"], r["K"]), []).append(r)
-    out = []
-    for (dens, k), rs in sorted(cells.items()):
-        errs = [r[estimator]["error"] for r in rs]
-        fin = [x for x in errs if x is not None and math.isfinite(x)]
-        out.append({"density": dens, "K": k, "median_abs_error": float(np.median(np.abs(fin))) if fin else math.nan,
-                    "median_error": float(np.median(fin)) if fin else math.nan, "undefined": len(rs) - len(fin),
-                    "median_cost_pct": float(np.median([r[estimator]["cost_pct"] for r in rs])),
-                    "max_cost_pct": float(np.max([r[estimator]["cost_pct"] for r in rs])), "cases": len(rs),
-                    "ratio": float(np.median([r["ratio"] for r in rs])),
-                    "measured_ratio": median_finite([r["measured_ratio"] for r in rs])})
-    return out
-
-
-def median_finite(values) -> float:
-    v = [x for x in values if x is not None and math.isfinite(x)]
-    return float(np.median(v)) if v else math.nan
-
-
-def choose_defaults(table, goal_cost=5.0):
-    """The cheapest (density, K) whose worst-scene cost stays under the goal and whose error is
-    within 2 points of the best such; returns (row, reason)."""
-    ok = [r for r in table if r["max_cost_pct"] < goal_cost and math.isfinite(r["median_abs_error"])]
-    if not ok:
-        return None, "no configuration keeps the estimate's cost under the goal on every sweep scene"
-    best = min(r["median_abs_error"] for r in ok)
-    near = [r for r in ok if r["median_abs_error"] <= best + 2.0]
-    pick = min(near, key=lambda r: r["median_cost_pct"])
-    return pick, (f"lowest median |error| among configurations whose cost stays under {goal_cost:g}% of the "
-                  f"grid-only total at 1e6 rays on every sweep scene is {fnum(best, 1)}%; the cheapest within 2 points "
-                  f"of it is density {pick['density']:g}, K = {pick['K']:,}")
 
 
 def write_markdown(path: Path, R: dict):
@@ -448,7 +185,7 @@ def write_markdown(path: Path, R: dict):
     counts = cal.get("counts") or {}
     if counts:
         how = ("the count models: the grid's time per ray from the work counts of K = "
-               f"{fnum(meta['samples'])} sample rays (" + calib.CountFit(**counts["grid"]).formula()
+               f"{fnum(meta['samples'])} sample rays (" + cost.CountFit(**counts["grid"]).formula()
                + "), each structure's from the same counts (`core.decide.cost.COUNT_TERMS`), its build from the "
                f"'{cal['model']}' model")
     else:
@@ -515,7 +252,7 @@ def write_markdown(path: Path, R: dict):
 
             for b in crep["large_builds"]:
                 w(f"| {b['scene']} | {b['triangles']:,} | {b['kind']} | {pair(b['build'], 1e3)} | "
-                  f"{fnum(rep.relative_difference(*b['build']), 1)}% | {pair(b['faults'])} | {pair(b['system'], 1e3)} |")
+                  f"{fnum(evaluate.relative_difference(*b['build']), 1)}% | {pair(b['faults'])} | {pair(b['system'], 1e3)} |")
             w("")
     # -- per scene
     w(f"## Break-even per scene ({cal['model']} model, the plan's grid estimate)\n")
@@ -535,11 +272,11 @@ def write_markdown(path: Path, R: dict):
     for s in R["scenes"]:
         m, c, work = s["measured"]["bvh"], s["components"], s["extra"].get("work") or {}
         halves = ", ".join(fbe(x) for x in s["extra"].get("R_C_repeats", {}).get("bvh", []))
-        w(f"| {s['name']} | {s['group']} | {fnum(s['triangles'])} | {scaled(s['grid']['build'], 1e3, 1)} | "
+        w(f"| {s['name']} | {s['group']} | {fnum(s['triangles'])} | {scaled(s['grid']['build_time'], 1e3, 1)} | "
           f"{scaled(s['grid']['per_ray'], 1e6, 2)} | {scaled(s['grid_sample_per_ray'], 1e6, 2)} | "
           f"{fnum(work.get('cells'), 1)} | {fnum(work.get('steps'), 1)}, {fnum(work.get('candidates'), 1)} | "
           f"{fnum((s['extra'].get('grid_sample_ratio') or [None])[0], 2)} | {scaled(s['grid_estimate_per_ray'], 1e6, 2)} | "
-          f"{scaled(m['build'], 1e3, 0)} | {scaled(m['per_ray'], 1e6, 2)} | {fbe(s['R_C'])} ({halves}) | "
+          f"{scaled(m['build_time'], 1e3, 0)} | {scaled(m['per_ray'], 1e6, 2)} | {fbe(s['R_C'])} ({halves}) | "
           f"{fbe(s['R_est'])} [{fbe(s['extra'].get('break_even_low'))}, {fbe(s['extra'].get('break_even_high'))}] | "
           f"{fnum(s['error'], 0, True)} | {fnum(c['build'], 0, True)} | {fnum(c['per_ray'], 0, True)} | "
           f"{fnum(c['grid_per_ray'], 0, True)} | {fnum(c.get('grid_sample'), 0, True)} |")
@@ -594,11 +331,11 @@ def write_markdown(path: Path, R: dict):
         w(f"| {fnum(row['R'], 0) if row['R'] is None else format(row['R'], '.0e')} | {fnum(row['grid'], 3)} | "
           f"{fnum(row['bvh'], 3)} | {fnum(row['hybrid_oracle'], 3)} | {fnum(row['reuse_oracle'], 3)} | "
           f"{fnum(row['online_oracle'], 3)} | {fnum(scaled_raw(row['bvh_share'], 100), 0, None)} |")
-    cost = summ["estimate_cost"]
+    ecost = summ["estimate_cost"]
     w(f"\nThe estimate's own cost at 1e6 rays, as % of the grid-only total: (i) tracing K uniform sample rays through "
-      f"the grid, plus arithmetic: median **{fnum(cost['median'], 2, None)}**, max {fnum(cost['max'], 2, None)} "
-      f"({cost['max_scene']}); (ii) with the samples from the workload, net of what the chosen structure would have "
-      f"spent on those rays: median **{fnum(cost['reuse_median'], 2, None)}**, max {fnum(cost['reuse_max'], 2, None)}.\n")
+      f"the grid, plus arithmetic: median **{fnum(ecost['median'], 2, None)}**, max {fnum(ecost['max'], 2, None)} "
+      f"({ecost['max_scene']}); (ii) with the samples from the workload, net of what the chosen structure would have "
+      f"spent on those rays: median **{fnum(ecost['reuse_median'], 2, None)}**, max {fnum(ecost['reuse_max'], 2, None)}.\n")
     if summ.get("embree"):
         em = summ["embree"]
         esp = em["speedups"]
@@ -767,7 +504,7 @@ def plots(out: Path, R: dict, scene_objs, sweep_rows):
     for i, s in enumerate(sc):
         # whiskers: the error against each half's R_C (the measurement's own noise)
         r_est = math.inf if s["R_est"] is None else s["R_est"]
-        halves = [rep.relative_error(r_est, math.inf if h is None else h) for h in s["extra"].get("R_C_repeats", {}).get("bvh", [])]
+        halves = [evaluate.relative_error(r_est, math.inf if h is None else h) for h in s["extra"].get("R_C_repeats", {}).get("bvh", [])]
         halves = [h for h in halves if math.isfinite(h)]
         if len(halves) >= 2:
             ax.plot([i, i], [min(halves), max(halves)], color="k", lw=1)
@@ -791,12 +528,12 @@ def plots(out: Path, R: dict, scene_objs, sweep_rows):
     fig, axes = plt.subplots(1, len(want), figsize=(4 * len(want), 3.8), squeeze=False)
     r = np.logspace(3, 8, 61)
     for ax, s in zip(axes[0], want):
-        t = rep.strategy_totals(s, r, ("bvh",))
+        t = evaluate.strategy_totals(s, r, ("bvh",))
         for k, style in (("grid", "-"), ("bvh", "-"), ("hybrid", "--"), ("hybrid_reuse", "-."), ("online", ":"),
                          ("oracle", "-")):
             if k in t:
                 ax.loglog(r, t[k], style, label=k, lw=2.5 if k == "oracle" else 1.5, alpha=0.35 if k == "oracle" else 1.0)
-        rc, re_ = rep.true_break_even(s), rep.estimated_break_even(s)
+        rc, re_ = evaluate.true_break_even(s), evaluate.estimated_break_even(s)
         if math.isfinite(rc):
             ax.axvline(rc, color="k", lw=0.6, label="R_C")
         if math.isfinite(re_):
@@ -840,272 +577,7 @@ def plots(out: Path, R: dict, scene_objs, sweep_rows):
     return made
 
 
-# -- the run -----------------------------------------------------------------------------------------
-
-def get_calibration(args, beside=None):
-    """The calibration the report evaluates, fitted with the package's default model (read
-    at run time: the add-on as it stands); a reused file fitted otherwise is refitted.
-    beside: when it measures one, a function giving ``calibrate``'s ``beside`` (the truths'
-    jobs, measured in the same passes)."""
-    path = Path(args.calibration)
-    cal, how = None, ""
-    if args.reuse_calibration and path.exists():
-        try:
-            cal = load(path)
-            log(f"calibration reused from {path} ({len(cal.scenes)} scenes, {cal.rays_per_scene:,} rays each)")
-            how = f"reused from {path.name}, measured {cal.created}"
-        except CalibrationError as e:
-            log(f"calibration at {path} not usable ({e}); measuring again")
-    if cal is None:
-        log(f"calibrating ({args.cal_scale} set, {fnum(args.cal_rays) if args.cal_rays else 'default'} rays per scene, "
-            f"grid samples {args.cal_ladder})")
-        last = [0.0]
-
-        def progress(f, msg):
-            if f - last[0] >= 0.1 or f >= 1.0:
-                last[0] = f
-                log(f"  {f:4.0%} {msg}")
-
-        cal = calibrate(kinds=("bvh", "embree"), scale=args.cal_scale, rays_per_scene=args.cal_rays, progress=progress,
-                        model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder),
-                        beside=beside() if beside is not None else None, **cal_options(args))
-        cal.save(path)
-        how = f"measured for this report in {cal.duration_s:.0f} s" + (
-            ", in the same passes as the evaluated scenes' truths" if beside is not None else "")
-    if cal.model != calib.DEFAULT_MODEL or cal.version.get("format") != CALIBRATION_FORMAT:
-        # an older file's constants are stated as it stated them: refit (the records are kept)
-        log(f"calibration fitted with '{cal.model}' (format {cal.version.get('format')}): refitting with the default "
-            f"model '{calib.DEFAULT_MODEL}'")
-        cal = cal.refitted(calib.DEFAULT_MODEL)
-        how += f", refitted with '{cal.model}'"
-    if not any(r.grid_samples for r in cal.scenes):
-        log("warning: the calibration holds no grid samples: the plan's grid estimate is uncorrected (ratio 1)")
-    return cal, how
-
-
-def again_path(first, n: int) -> Path:
-    """Where the report saves its calibration number ``n`` (2, 3, ...), beside the first
-    (``--calibration``), so each pass of each one can be compared afterwards."""
-    first = Path(first)
-    return first.with_name(f"{first.stem}_{n}{first.suffix or '.json'}")
-
-
-def calibrate_again(args, cal: Calibration):
-    """Another calibration right after the first (same set and settings); the caller saves it
-    (``again_path``)."""
-    log(f"calibrating again, for the constants' repeatability ({args.cal_scale} set)")
-    return calibrate(kinds=tuple(cal.fits), scale=args.cal_scale, rays_per_scene=args.cal_rays,
-                     model=calib.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_options(args))
-
-
-def quiet_share(args) -> float | None:
-    """The share of the CPU other processes may take before a round is retaken (None: never)."""
-    return args.quiet_share if args.quiet_share > 0 else None
-
-
-def cal_options(args) -> dict:
-    return {"quiet": quiet_share(args), **({} if args.cal_repeats is None else {"repeats": args.cal_repeats})}
-
-
-def calibration_repeatability(cal: Calibration, cal2: Calibration, scenes) -> dict:
-    """How two calibrations in a row differ: each constant's relative difference
-    |a - b| / mean, as the model states them (``evaluate.constants_apart``: builds at
-    ``cost.BUILD_ANCHORS``, per-ray times at ``cost.COUNT_ANCHORS``) and as the file stores
-    the coefficients, and (what a plan uses) the per-ray times they predict on the
-    evaluated scenes' own work counts and the break-evens they give."""
-    rel = rep.relative_difference
-    consts = rep.constants_apart(cal, cal2)
-    preds, bes = {}, []
-    for s in scenes:
-        w = s.extra.get("work")
-        for k in cal.counts:
-            a, b = cal.count_per_ray(k, s.triangles, w or {}), cal2.count_per_ray(k, s.triangles, w or {})
-            if a and b:
-                preds.setdefault(k, []).append(rel(a[0], b[0]))
-        if w and "grid" in cal.counts and "bvh" in cal.counts:
-            r = [rep.break_even(c.estimate("bvh", s.triangles).build, c.count_per_ray("grid", s.triangles, w)[0],
-                                c.count_per_ray("bvh", s.triangles, w)[0]) for c in (cal, cal2)]
-            if all(math.isfinite(x) for x in r):
-                bes.append(max(r) / min(r))
-    coefs = rep.constants_apart(cal, cal2, stated=False)
-    return {"constants": consts, "large_builds": large_builds(cal, cal2), "max_constant": max(consts.values(), default=math.nan),
-            "median_constant": median_finite(list(consts.values())),
-            "coefficients": coefs, "max_coefficient": max(coefs.values(), default=math.nan),
-            "median_coefficient": median_finite(list(coefs.values())),
-            "per_ray": {k: {"median": median_finite(v), "max": max(v)} for k, v in preds.items()},
-            "break_even_ratio": {"median": median_finite(bes), "max": max(bes, default=math.nan), "scenes": len(bes)}}
-
-
-#: the calibration scenes whose builds the two-calibrations table lists (the large builds
-#: the build constants at 262,144 and 1,048,576 triangles come from)
-LARGE_BUILD = 262_144
-
-
-def large_builds(cal: Calibration, cal2: Calibration) -> list[dict]:
-    """Each structure's build on the calibration scenes of at least ``LARGE_BUILD``
-    triangles in both calibrations: median time, page faults and system seconds (None
-    where a file does not have them), so the report can say how much of a build
-    constant's difference is the kernel's."""
-    second = {r.name: r for r in cal2.scenes}
-    rows = []
-    for r in cal.scenes:
-        r2 = second.get(r.name)
-        if r2 is None or r.triangles < LARGE_BUILD:
-            continue
-        for k, m in r.kinds.items():
-            m2 = r2.kinds.get(k)
-            if m2 is not None:
-                rows.append({"scene": r.name, "triangles": r.triangles, "kind": k,
-                             "build": [m.build_time, m2.build_time], "faults": [m.build_faults, m2.build_faults],
-                             "system": [m.build_system, m2.build_system]})
-    return rows
-
-
-def calls_of_1000(scenes, kind: str = "bvh") -> dict:
-    """A workload arriving as calls of 1,000 rays (a script calling ``api.cast`` in a loop):
-    the ski-rental rule counting the grid time of all calls so far (``online`` with
-    batches of 1,000) against the oracle, and a plan per call that forgets the calls before
-    it (1,000 rays never pay for a build: the grid every time)."""
-    on, per_call = [], []
-    for s in scenes:
-        t = rep.strategy_totals(s, rep.RAY_COUNTS, (kind,), kind, batch=1000)
-        on += list(t["online"] / t["oracle"])
-        per_call += list(t["grid"] / t["oracle"])
-    return {"online_over_oracle": {"median": median_finite(on), "max": max(on, default=math.nan)},
-            "per_call_over_oracle": {"median": median_finite(per_call), "max": max(per_call, default=math.nan)}}
-
-
-def plan_repeatability(scenes, kind: str = "bvh") -> dict:
-    """max / min of each scene's break-evens over the repeated plan() runs (one calibration)."""
-    r = []
-    for s in scenes:
-        v = [x for x in s.extra.get("plan_repeats", {}).get(kind, []) if x is not None and math.isfinite(x)]
-        if len(v) >= 2:
-            r.append(max(v) / min(v))
-    return {"median": median_finite(r), "max": max(r, default=math.nan), "within_1_2": sum(x <= 1.2 for x in r),
-            "scenes": len(r), "runs": max((len(s.extra.get("plan_repeats", {}).get(kind, [])) for s in scenes), default=0)}
-
-
-#: count models compared by held-out error: (grid estimate, structure's per ray, grid terms,
-#: structure terms, grid form, structure form); forms as ``cost.CountFit.form``
-COUNT_VARIANTS = [
-    ("sample x ratio", "affine log2n", None, None, "linear", "linear"),
-    ("counts: cells", "affine log2n", ("1", "cells"), None, "linear", "linear"),
-    ("counts: cells, refs", "affine log2n", ("1", "cells", "refs"), None, "linear", "linear"),
-    ("sample x ratio", "counts: log2n", None, ("1", "log2n"), "linear", "linear"),
-    ("counts: cells", "counts: log2n", ("1", "cells"), ("1", "log2n"), "linear", "linear"),
-    ("counts: steps, candidates", "counts: log2n", ("1", "steps", "candidates"), ("1", "log2n"), "linear", "linear"),
-    ("counts: steps, candidates, tests", "counts: log2n", ("1", "steps", "candidates", "tests"), ("1", "log2n"),
-     "linear", "linear"),
-    ("counts: cells", "counts: log2n, hit, length", ("1", "cells"), ("1", "log2n", "hit_log2n", "length_log2n"), "linear", "linear"),
-    ("counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
-    ("counts: cells, refs", "counts: log2n, cells, refs", ("1", "cells", "refs"), ("1", "log2n", "cells", "refs"), "linear", "linear"),
-    ("log counts: cells", "counts: log2n, cells, refs", ("1", "cells"), ("1", "log2n", "cells", "refs"), "log", "linear"),
-    ("log counts: cells", "log counts: log2n, refs", ("1", "cells"), ("1", "log2n", "refs"), "log", "log"),
-    ("log counts: cells", "log counts: log2n", ("1", "cells"), ("1", "log2n"), "log", "log"),
-]
-
-
-def count_comparison(cal: Calibration, kind: str = "bvh", samples: int = DEFAULT_SAMPLES) -> list[dict]:
-    """Leave-one-out over the calibration scenes of each count-model variant: the held-out
-    break-even error and the per-ray errors of the grid and of ``kind``."""
-    rows = []
-    for gname, hname, gt, ht, gf, hf in COUNT_VARIANTS:
-        kw = dict(kind=kind, grid="sample" if gt is None else "counts", hds="affine" if ht is None else "counts",
-                  terms_of={"grid": gt or ("1", "cells", "refs"), kind: ht or ("1", "log2n")},
-                  forms_of={"grid": gf, kind: hf}, samples=samples, model=cal.model)
-        loo = rep.leave_one_out([r for r in cal.scenes if r.work], **kw)
-        rows.append({"grid": gname, "per_ray": hname, "loo": median_abs([x["error"] for x in loo]),
-                     "grid_error": median_abs([x["grid_error"] for x in loo]),
-                     "per_ray_error": median_abs([x["per_ray_error"] for x in loo]),
-                     "undefined": sum(not math.isfinite(x["error"]) for x in loo), "scenes": len(loo)})
-    return rows
-
-
-def summarise(scenes, kinds, samples: int):
-    """The tables of the evaluation and the headline, for ``scenes`` as estimated."""
-    errs = [rep.relative_error(rep.estimated_break_even(s), rep.true_break_even(s)) for s in scenes]
-    by_group = {}
-    for g in sorted({s.group for s in scenes}):
-        by_group[g] = rep.error_summary([e for s, e in zip(scenes, errs) if s.group == g])
-    rows, wasted = [], 0
-    for r in rep.RAY_COUNTS:
-        per = [rep.strategy_totals(s, [r], ("bvh",)) for s in scenes]
-        wasted += sum(int(r <= s.samples and t["choice_reuse"][0] != "grid") for s, t in zip(scenes, per))
-        rows.append({"R": float(r),
-                     "grid": median_finite([t["grid"][0] / t["hybrid"][0] for t in per]),
-                     "bvh": median_finite([t["bvh"][0] / t["hybrid"][0] for t in per]),
-                     "hybrid_oracle": median_finite([t["hybrid"][0] / t["oracle"][0] for t in per]),
-                     "reuse_oracle": median_finite([t["hybrid_reuse"][0] / t["oracle"][0] for t in per]),
-                     "online_oracle": median_finite([t["online"][0] / t["oracle"][0] for t in per]),
-                     "bvh_share": float(np.mean([t["choice"][0] == "bvh" for t in per])) if per else math.nan})
-    costs = [rep.estimate_cost_percent(s) for s in scenes]
-    reuse_costs = [rep.estimate_cost_percent(s, reuse=True) for s in scenes]
-    imax = int(np.argmax(costs)) if costs else 0
-    rep_, steady = [], []
-    for s, e in zip(scenes, errs):
-        spread = s.extra.get("R_C_repeatability", {}).get("bvh", math.nan)
-        if spread is not None and math.isfinite(spread):
-            rep_.append(spread)
-            if rep_[-1] <= 25:
-                steady.append(e)
-    out = {
-        "errors": rep.error_summary(errs), "errors_by_group": by_group,
-        "never": rep.never_agreement([(rep.estimated_break_even(s), rep.true_break_even(s)) for s in scenes]),
-        "median_per_ray": rep.median_per_ray(scenes, ("grid",) + tuple(kinds)),
-        "speedups": rep.speedup_summary(scenes, rep.RAY_COUNTS, ("bvh",)),
-        "picks": rep.pick_accuracy(scenes), "picks_total": rep.pick_accuracy(scenes, sunk_grid=False),
-        "by_ray_count": rows, "wasted_builds": {"cases": wasted, "of": len(scenes) * len(rep.RAY_COUNTS)},
-        "rc_repeatability": {"median": float(np.median(rep_)), "max": float(np.max(rep_)), "scenes": len(rep_)} if rep_ else None,
-        "errors_repeatable": rep.error_summary(steady),
-        "plan_repeatability": {k: plan_repeatability(scenes, k) for k in kinds},
-        "calls_1000": calls_of_1000(scenes),
-        "evaluated_ratio": rep.sample_ratio([s.grid.per_ray for s in scenes], [s.grid_sample_per_ray for s in scenes]),
-        "estimate_cost": {"median": median_finite(costs), "max": costs[imax] if costs else math.nan,
-                          "max_scene": scenes[imax].name if scenes else "-",
-                          "reuse_median": median_finite(reuse_costs), "reuse_max": max(reuse_costs, default=math.nan),
-                          "per_scene": {s.name: c for s, c in zip(scenes, costs)},
-                          "reuse_per_scene": {s.name: c for s, c in zip(scenes, reuse_costs)}},
-    }
-    if "embree" in kinds:
-        em = []
-        for s in scenes:
-            rc = rep.true_break_even(s, "embree")
-            re_ = rep.estimated_break_even(s, "embree")
-            par = [x for x in s.extra.get("build_parallelism", {}).get("embree", []) if x is not None]
-            em.append({"name": s.name, "triangles": s.triangles, "build": s.measured["embree"].build,
-                       "build_est": s.estimated["embree"].build,
-                       "build_error": rep.error_components(s, "embree")["build"],
-                       "per_ray": s.measured["embree"].per_ray, "R_C": rc, "R_est": re_, "error": rep.relative_error(re_, rc),
-                       "parallelism": par})
-        out["embree"] = {"scenes": em, "errors": rep.error_summary([x["error"] for x in em]),
-                         "speedups": rep.speedup_summary(scenes, rep.RAY_COUNTS, ("bvh", "embree")),
-                         "parallelism": parallelism_summary([x for r in em for x in r["parallelism"]])}
-    out["headline"] = headline(out, samples)
-    return out
-
-
-def calibration_parallelism(cal, kind: str) -> list:
-    """The calibration's builds of ``kind``: each pass's threads busy where the file keeps its
-    passes (``SceneRecord.passes``), else each scene's median build over its median CPU time."""
-    return [m.build_parallelism for r in cal.scenes
-            for m in (r.passes.get(kind) or ([r.kinds[kind]] if kind in r.kinds else []))]
-
-
-def parallelism_summary(values) -> dict:
-    """Builds' CPU seconds per second (``Measurement.build_parallelism``): their median, how
-    many there are and the share that kept about one thread busy (below ONE_THREAD)."""
-    v = [float(x) for x in values if x is not None and math.isfinite(x)]
-    return {"builds": len(v), "median": float(np.median(v)) if v else math.nan,
-            "one_thread_share": sum(x < ONE_THREAD for x in v) / len(v) if v else math.nan}
-
-
-def scene_rows(scenes) -> list[dict]:
-    """Each SceneResult as a dict with its R_C, R_est, error and error components."""
-    return [dict(s.to_dict(), R_C=rep.true_break_even(s), R_est=rep.estimated_break_even(s),
-                 error=rep.relative_error(rep.estimated_break_even(s), rep.true_break_even(s)),
-                 components=rep.error_components(s)) for s in scenes]
-
+# -- the headline's rows ---------------------------------------------------------------------------
 
 def repeat_rows(summ: dict) -> list[dict]:
     """Headline rows on Embree's error and the estimate's repeatability (when measured)."""
@@ -1180,6 +652,73 @@ def headline(summ: dict, samples: int) -> list[dict]:
                   f"{fnum(summ['calls_1000']['per_call_over_oracle']['median'], 3)} "
                   f"({fnum(summ['calls_1000']['per_call_over_oracle']['max'], 2)})", "met": "-"},
     ]
+
+
+# -- the run -----------------------------------------------------------------------------------------
+
+def get_calibration(args, beside=None):
+    """The calibration the report evaluates, fitted with the package's default model (read
+    at run time: the add-on as it stands); a reused file fitted otherwise is refitted.
+    beside: when it measures one, a function giving ``calibrate``'s ``beside`` (the truths'
+    jobs, measured in the same passes)."""
+    path = Path(args.calibration)
+    cal, how = None, ""
+    if args.reuse_calibration and path.exists():
+        try:
+            cal = load(path)
+            log(f"calibration reused from {path} ({len(cal.scenes)} scenes, {cal.rays_per_scene:,} rays each)")
+            how = f"reused from {path.name}, measured {cal.created}"
+        except CalibrationError as e:
+            log(f"calibration at {path} not usable ({e}); measuring again")
+    if cal is None:
+        log(f"calibrating ({args.cal_scale} set, {fnum(args.cal_rays) if args.cal_rays else 'default'} rays per scene, "
+            f"grid samples {args.cal_ladder})")
+        last = [0.0]
+
+        def progress(f, msg):
+            if f - last[0] >= 0.1 or f >= 1.0:
+                last[0] = f
+                log(f"  {f:4.0%} {msg}")
+
+        cal = calibrate(kinds=("bvh", "embree"), scale=args.cal_scale, rays_per_scene=args.cal_rays, progress=progress,
+                        model=cost.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder),
+                        beside=beside() if beside is not None else None, **cal_options(args))
+        cal.save(path)
+        how = f"measured for this report in {cal.duration_s:.0f} s" + (
+            ", in the same passes as the evaluated scenes' truths" if beside is not None else "")
+    if cal.model != cost.DEFAULT_MODEL or cal.version.get("format") != CALIBRATION_FORMAT:
+        # an older file's constants are stated as it stated them: refit (the records are kept)
+        log(f"calibration fitted with '{cal.model}' (format {cal.version.get('format')}): refitting with the default "
+            f"model '{cost.DEFAULT_MODEL}'")
+        cal = cal.refitted(cost.DEFAULT_MODEL)
+        how += f", refitted with '{cal.model}'"
+    if not any(r.grid_samples for r in cal.scenes):
+        log("warning: the calibration holds no grid samples: the plan's grid estimate is uncorrected (ratio 1)")
+    return cal, how
+
+
+def again_path(first, n: int) -> Path:
+    """Where the report saves its calibration number ``n`` (2, 3, ...), beside the first
+    (``--calibration``), so each pass of each one can be compared afterwards."""
+    first = Path(first)
+    return first.with_name(f"{first.stem}_{n}{first.suffix or '.json'}")
+
+
+def calibrate_again(args, cal: Calibration):
+    """Another calibration right after the first (same set and settings); the caller saves it
+    (``again_path``)."""
+    log(f"calibrating again, for the constants' repeatability ({args.cal_scale} set)")
+    return calibrate(kinds=tuple(cal.fits), scale=args.cal_scale, rays_per_scene=args.cal_rays,
+                     model=cost.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder), **cal_options(args))
+
+
+def quiet_share(args) -> float | None:
+    """The share of the CPU other processes may take before a round is retaken (None: never)."""
+    return args.quiet_share if args.quiet_share > 0 else None
+
+
+def cal_options(args) -> dict:
+    return {"quiet": quiet_share(args), **({} if args.cal_repeats is None else {"repeats": args.cal_repeats})}
 
 
 def main(argv=None):
@@ -1266,42 +805,55 @@ def main(argv=None):
     # and truths measured one after the other differ by that drift as well as by the model
     joint = {}
 
+    def truth_progress(f, msg):
+        log(f"  truths: {msg}")
+
     def beside():
         passes = args.cal_repeats if args.cal_repeats is not None else CALIBRATION_REPEATS
         if passes != args.repeats:
             log(f"the truths take the calibration's passes ({passes}), not --repeats {args.repeats}")
-        jobs, finish = truth_jobs(meshes, args, kinds, passes)
+        jobs, finish = evaluate.truth_jobs(meshes, kinds, passes, rays=args.rays, seed=args.seed, progress=truth_progress)
         return jobs, lambda runs, shares: joint.setdefault("truths", finish(runs, shares, quiet_share(args)))
 
     cal, cal_how = get_calibration(args, beside=beside if args.joint else None)
     warm_up(("grid",) + kinds)
     log(cal.describe())
     ks = sorted(set(args.sweep_k) | {args.samples})
-    ratio_info = grid_sample_ratios(cal, ks)
-    truths = joint.get("truths") or measure_truths(meshes, args, kinds)
+    ratio_info = evaluate.grid_sample_ratios(cal, ks)
+    log("  grid sample ratio (large workload / K-sample time per ray) from the calibration: "
+        + ", ".join(f"K={k}: {v['median']:.2f} [{v['low']:.2f}, {v['high']:.2f}]" for k, v in ratio_info["ratios"].items()))
+    truths = joint.get("truths") or evaluate.measure_truths(meshes, kinds, rays=args.rays, repeats=args.repeats,
+                                                            quiet=quiet_share(args), seed=args.seed,
+                                                            progress=truth_progress)
     passes = truths[0].repeats if truths else args.repeats
     for i, (name, group, _) in enumerate(scene_list):
         mesh, be = meshes[i], truths[i]
         meshes[i] = truths[i] = None  # each scene's structures go once it is done
-        s, rays, grid, structs = measure_scene(name, group, mesh, cal, args, kinds, be)
+        s, rays, grid, structs = evaluate.measure_scene(name, group, mesh, cal, kinds, be, rays=args.rays,
+                                                        samples=args.samples, seed=args.seed,
+                                                        plan_repeats=args.plan_repeats)
         notes += [f"{name}: {x}" for x in s.extra["measurement_notes"]]
-        rc, re_ = rep.true_break_even(s), rep.estimated_break_even(s)
-        log(f"  grid {s.grid.build * 1e3:.1f} ms {s.grid.per_ray * 1e6:.2f} us/ray (estimate {s.grid_estimate_per_ray * 1e6:.2f} "
+        rc, re_ = evaluate.true_break_even(s), evaluate.estimated_break_even(s)
+        log(f"  grid {s.grid.build_time * 1e3:.1f} ms {s.grid.per_ray * 1e6:.2f} us/ray (estimate {s.grid_estimate_per_ray * 1e6:.2f} "
             f"= sample {s.grid_sample_per_ray * 1e6:.2f} x {fnum(s.grid_sample_ratio, 2)}); "
-            f"bvh {s.measured['bvh'].build * 1e3:.0f} ms {s.measured['bvh'].per_ray * 1e6:.2f} us/ray; "
-            f"R_C {fnum(rc)} R_est {fnum(re_)} ({fnum(rep.relative_error(re_, rc), 0, True)})")
+            f"bvh {s.measured['bvh'].build_time * 1e3:.0f} ms {s.measured['bvh'].per_ray * 1e6:.2f} us/ray; "
+            f"R_C {fnum(rc)} R_est {fnum(re_)} ({fnum(evaluate.relative_error(re_, rc), 0, True)})")
         results.append(s)
         if name in sweep_names:
-            rows, brows = sweep_scene(s, mesh, rays, cal, args, structs["bvh"])
+            rows, brows = evaluate.sweep_scene(s, mesh, rays, cal, structs["bvh"], sweep_rays=args.sweep_rays,
+                                               densities=args.sweep_density, ks=args.sweep_k,
+                                               repeats=args.sweep_repeats, log=log)
             sweep_rows += rows
             batch_rows += brows
         del mesh, rays, grid, structs
 
-    summary = summarise(results, kinds, args.samples)
+    summary = evaluate.summarise(results, kinds)
+    summary["headline"] = headline(summary, args.samples)
     if summary.get("embree"):
-        summary["embree"]["calibration_parallelism"] = parallelism_summary(calibration_parallelism(cal, "embree"))
-    models = model_comparison(results, cal)
-    summary["count_models"] = {k: count_comparison(cal, k, args.samples) for k in kinds}
+        summary["embree"]["calibration_parallelism"] = evaluate.parallelism_summary(
+            evaluate.calibration_parallelism(cal, "embree"))
+    models = evaluate.model_comparison(results, cal)
+    summary["count_models"] = {k: evaluate.count_comparison(cal, k, args.samples) for k in kinds}
     if args.calibrations >= 2:
         again = []
         for i in range(args.calibrations - 1):
@@ -1317,28 +869,11 @@ def main(argv=None):
         pairs.append((cal, again[0], f"the report's own calibration, {first}, and the one after it, alone"))
         for key, (a, b, which), goal in zip(("calibration_repeatability", "calibration_repeatability_first"),
                                             pairs, (True, False)):
-            summary[key] = dict(calibration_repeatability(a, b, results), pair=which)
+            summary[key] = dict(evaluate.calibration_repeatability(a, b, results), pair=which)
             summary["headline"].append(calibration_row(summary[key], goal=goal))
-    best_model, decision = decide_model(models, cal.model, calib.DEFAULT_MODEL)
-    sweep = None
-    if sweep_rows:
-        tables = {est: sweep_table(sweep_rows, est) for est in GRID_ESTIMATES}
-        picks = {est: choose_defaults(t) for est, t in tables.items()}
-        pick = picks["plan"][0]
-        text = (f"With the plan's estimate ({cal.model} build model, the count model's time per ray): "
-                f"{picks['plan'][1]}. With the uncorrected sample instead: {picks['uncorrected'][1]}. "
-                f"The plan's default is K = {DEFAULT_SAMPLES:,} at density 2 (`core.plan.DEFAULT_SAMPLES`)")
-        if pick is not None:
-            here = {(r["density"], r["K"]): r for r in tables["plan"]}.get((2.0, DEFAULT_SAMPLES))
-            text += ("; " + (f"it gives {fnum(here['median_abs_error'], 1, None)} at {fnum(here['median_cost_pct'], 2, None)} "
-                             f"median cost" if here else "it is not in this sweep")
-                     + (f"; the sweep recommends density {pick['density']:g}, K = {pick['K']:,}." if
-                        (pick["density"], pick["K"]) != (2.0, DEFAULT_SAMPLES) else "; the sweep agrees with it."))
-        else:
-            text += "."
-        sweep = {"scenes": sorted({r["scene"] for r in sweep_rows}, key=lambda n: [x.name for x in results].index(n)),
-                 "rows": sweep_rows, "tables": tables, "batch": batch_rows,
-                 "choice": {"picks": {est: p for est, (p, _) in picks.items()}, "text": text}}
+    best_model, decision = evaluate.decide_model(models, cal.model, cost.DEFAULT_MODEL)
+    sweep = (evaluate.sweep_summary(sweep_rows, batch_rows, [x.name for x in results], cal.model) if sweep_rows
+             else None)
     meta = {
         "command": "python scripts/report.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date": datetime.datetime.now().isoformat(timespec="seconds"), "quick": args.quick, "rays": args.rays,
@@ -1347,16 +882,16 @@ def main(argv=None):
         "python": platform.python_version(), "numpy": np.__version__, "load_before": load_before,
         "threads": (results[0].extra["threads"] if results else {}),
         "calibration": {"scenes": len(cal.scenes), "rays_per_scene": cal.rays_per_scene, "how": cal_how,
-                        "model": cal.model, "default_model": calib.DEFAULT_MODEL, "ladder": ratio_info["ladder"],
+                        "model": cal.model, "default_model": cost.DEFAULT_MODEL, "ladder": ratio_info["ladder"],
                         "ratio_at_samples": ratio_info["ratios"].get(args.samples),
                         "fits": {k: v.__dict__ for k, v in cal.fits.items()},
                         "counts": {k: dataclasses.asdict(v) for k, v in cal.counts.items()}},
         "kinds": list(kinds), "notes": notes,
     }
     R = {"meta": meta, "summary": summary, "models": models, "model_decision": decision, "best_model": best_model,
-         "grid_sample_ratio": ratio_info, "model_docs": {m: rep.MODEL_DOCS.get(m, "") for m in models},
+         "grid_sample_ratio": ratio_info, "model_docs": {m: evaluate.MODEL_DOCS.get(m, "") for m in models},
          "sweep": sweep, "notes": list(notes), "plots": [],
-         "scenes": scene_rows(results)}
+         "scenes": evaluate.scene_rows(results)}
     if not args.no_plots:
         try:
             R["plots"] = plots(out, R, results, sweep_rows)

@@ -1,6 +1,6 @@
 """Re-measure the calibration shipped with the package (core/default_calibration.json).
 
-    .venv/bin/python scripts/ship_calibration.py [--model affine|paper] [--scale default]
+    .venv/bin/python scripts/ship_calibration.py [--model terms|power] [--scale default]
     .venv/bin/python scripts/ship_calibration.py --refit    # no timing: the file's own records
 
 Run on a quiet machine: the file is what every user without their own calibration gets
@@ -17,20 +17,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _package  # noqa: E402
 
 _package.core_package()
-from hybrid_raycast.core import decide as C  # noqa: E402
+from hybrid_raycast.core import decide  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default=C.DEFAULT_MODEL, choices=sorted(C.MODELS))
-    ap.add_argument("--scale", default="default", choices=sorted(C.RAYS_PER_SCENE))
-    ap.add_argument("--output", type=Path, default=C.DEFAULT_PATH)
+    ap.add_argument("--model", default=decide.DEFAULT_MODEL, choices=sorted(decide.MODELS))
+    ap.add_argument("--scale", default="default", choices=sorted(decide.RAYS_PER_SCENE))
+    ap.add_argument("--output", type=Path, default=decide.DEFAULT_PATH)
     ap.add_argument("--refit", action="store_true",
                     help="fit the shipped file's own records again with the current models and count models "
                          "(Calibration.refitted), measuring nothing: for a change of model, not of machine")
     args = ap.parse_args(argv)
     if args.refit:
-        old = C.load(C.DEFAULT_PATH, check_version=False)
+        old = decide.load(decide.DEFAULT_PATH, check_version=False)
         cal = old.refitted(args.model)
         changed = sorted(k for k in set(old.counts) | set(cal.counts)
                          if (old.counts.get(k) and old.counts[k].formula()) != (cal.counts.get(k) and cal.counts[k].formula()))
@@ -46,11 +46,11 @@ def main(argv=None) -> int:
     def progress(f, msg):
         print(f"[{f * 100:5.1f}%] {msg}", flush=True)
 
-    cal = C.calibrate(scale=args.scale, model=args.model, progress=progress)
+    cal = decide.calibrate(scale=args.scale, model=args.model, progress=progress)
     cal.source = "shipped defaults"
     cal.save(args.output)
     print(cal.describe())
-    for k in C.SAMPLE_LADDER:
+    for k in decide.SAMPLE_LADDER:
         med, lo, hi = cal.grid_sample_ratio(k)
         print(f"  grid sample ratio K={k:>6,}: {med:.3f} [{lo:.3f}, {hi:.3f}]")
     print(f"wrote {args.output} in {cal.duration_s:.1f} s")

@@ -35,7 +35,8 @@ def scenes_dir():
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "blender: needs bpy (Blender as a Python module)")
-    config.addinivalue_line("markers", "slow: takes more than a few seconds")
+    config.addinivalue_line("markers", "slow: needs a real calibration, a large scene or a zip round trip "
+                                       "(make test-slow, its own CI leg; make test leaves it out)")
 
 
 # bpy's exit bugs (scripts/_bpy_exit.py): leave right after pytest's last hook, when its

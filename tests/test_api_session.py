@@ -252,7 +252,7 @@ def test_big_casts_run_in_chunks_with_progress_and_stop_on_interrupt(fresh, addo
     api = addon.api
     o, d = rays()
     whole = api.cast(o, d, structure="bvh")  # one structure: the same answers bit for bit
-    monkeypatch.setattr(api, "CHUNK", 64)
+    monkeypatch.setattr(addon.operators.query, "CHUNK", 64)
     seen = []
     chunked = api.cast(o, d, structure="bvh", progress=lambda done, total: seen.append((done, total)))
     assert seen == [(min(RAYS, k), RAYS) for k in range(64, RAYS + 64, 64)], seen
@@ -345,7 +345,7 @@ def test_a_session_plans_once_and_leaves_the_grid_by_the_online_rule(fresh, addo
     est = s.calibration.estimate(kinds[-1], s.mesh.triangle_count)
     assert s.grid_rays == RAYS * switched_at
     assert (core.ski_rental(s.grid_time, s.grid_rays, est) == "switch"
-            or s.grid_rays + RAYS > s.plan.break_even), (s.grid_time, est.build, s.grid_rays, s.plan.break_even)
+            or s.grid_rays + RAYS > s.plan.break_even), (s.grid_time, est.build_time, s.grid_rays, s.plan.break_even)
     ref = core.build(s.mesh, "brute").trace(o, d)
     for kind in ("grid", "bvh"):
         forced = api.cast(o, d, structure=kind)

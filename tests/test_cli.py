@@ -2,8 +2,6 @@
 
 import io
 import json
-import math
-import os
 import subprocess
 import sys
 import textwrap

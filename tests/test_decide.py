@@ -27,10 +27,15 @@ def test_break_even_is_build_over_the_per_ray_gain_and_never_when_the_grid_is_no
     assert cost.break_even(0.0, 2e-6, 1e-6) == 0.0
 
 
+def costs_of(**figures):
+    """{kind: Cost} from kind=(build seconds, seconds per ray)."""
+    return {k: cost.Cost.point(k, b, t) for k, (b, t) in figures.items()}
+
+
 def test_choose_is_the_least_cost_with_the_grid_build_sunk():
     # grid 4 us/ray; bvh: 0.1 s + 1 us/ray (R* = 0.1 / 3e-6 = 33,333); embree: 0.3 s + 0.5 us/ray
     # (R* = 0.3 / 3.5e-6 = 85,714).  bvh vs embree: 0.1 + 1e-6 R = 0.3 + 5e-7 R at R = 400,000.
-    cands = {"bvh": (0.1, 1e-6), "embree": (0.3, 5e-7)}
+    cands = costs_of(bvh=(0.1, 1e-6), embree=(0.3, 5e-7))
     got = rule.choose([1_000, 33_333, 33_334, 399_999, 400_001, 1e7], 4e-6, cands)
     assert list(got) == ["grid", "grid", "bvh", "bvh", "embree", "embree"]
 
@@ -38,27 +43,27 @@ def test_choose_is_the_least_cost_with_the_grid_build_sunk():
 def test_choose_breaks_ties_towards_the_grid_then_the_first_name():
     # powers of two, so both totals are exact in binary and tie exactly at R* = 512
     t_g, b, t = 2.0 ** -18, 2.0 ** -10, 2.0 ** -19  # R* = 2^-10 / 2^-19 = 512
-    assert rule.choose([512], t_g, {"bvh": (b, t)})[0] == "grid"
-    assert rule.choose([513], t_g, {"bvh": (b, t)})[0] == "bvh"
-    assert rule.choose([1e6], t_g, {"bvh": (b, t), "embree": (b, t)})[0] == "bvh"
+    assert rule.choose([512], t_g, costs_of(bvh=(b, t)))[0] == "grid"
+    assert rule.choose([513], t_g, costs_of(bvh=(b, t)))[0] == "bvh"
+    assert rule.choose([1e6], t_g, costs_of(bvh=(b, t), embree=(b, t)))[0] == "bvh"
 
 
 def test_choose_with_answered_samples_weighs_the_rays_left_and_embree_retraces_all():
     # 1,000 rays answered: grid costs (R - 1000) t_G, the numpy BVH T_B + (R - 1000) t_H,
     # Embree T_B + R t_E
-    cands = {"bvh": (0.02, 1e-6), "embree": (0.0, 3.5e-6)}
+    cands = costs_of(bvh=(0.02, 1e-6), embree=(0.0, 3.5e-6))
     names, c = rule.costs([5_000], 4e-6, cands, answered=1000)
     assert names == ["grid", "bvh", "embree"]
     assert c[:, 0] == pytest.approx([0.016, 0.024, 0.0175], rel=1e-12)
     assert rule.choose([5_000], 4e-6, cands, answered=1000)[0] == "grid"
     assert rule.choose([5_000], 4e-6, cands, answered=0)[0] == "embree"  # 0.02 > 0.0175
-    assert rule.choose([800], 4e-6, {"bvh": (0.0, 1e-6)}, answered=1000)[0] == "grid"  # nothing left to trace
+    assert rule.choose([800], 4e-6, costs_of(bvh=(0.0, 1e-6)), answered=1000)[0] == "grid"  # nothing left to trace
 
 
 def test_choose_keeps_the_grid_at_or_below_the_floor_whatever_the_costs():
     # bvh is cheaper from 33,334 rays on (R* = 33,333.3); a floor of 50,000 overrides that
     # up to and including 50,000 rays, and changes nothing above it
-    cands = {"bvh": (0.1, 1e-6)}
+    cands = costs_of(bvh=(0.1, 1e-6))
     got = rule.choose([1_000, 33_334, 50_000, 50_001], 4e-6, cands, floor=50_000)
     assert list(got) == ["grid", "grid", "grid", "bvh"]
     assert list(rule.choose([33_334, 50_000], 4e-6, cands)) == ["bvh", "bvh"]
@@ -70,9 +75,8 @@ def test_plan_and_evaluation_decide_through_the_one_rule():
     n = 1024
     cal = Calibration({"bvh": KindFit(1e-5, 5e-8, 1e-5, 1e-5, 5e-8, 5e-8, 1)}, source="hand")
     e = cal.estimate("bvh", n)
-    assert (e.build, e.per_ray) == pytest.approx((0.1024, 5e-7), rel=1e-12)
-    s = ev.SceneResult("s", n, 1, ev.Cost(0.01, 2e-6), {"bvh": ev.Cost(e.build, e.per_ray)},
-                       {"bvh": ev.Cost(e.build, e.per_ray)}, 2e-6, 0.0, 4096)
+    assert (e.build_time, e.per_ray) == pytest.approx((0.1024, 5e-7), rel=1e-12)
+    s = ev.SceneResult("s", n, 1, cost.Cost.point("grid", 0.01, 2e-6), {"bvh": e}, {"bvh": e}, 2e-6, 0.0, 4096)
     for r, want in ((68_266, "grid"), (68_267, "bvh")):
         assert plan_from_timings(n, r, cal, 0.01, 2e-6, kinds=("grid", "bvh")).chosen == want
         assert ev.hybrid_choice(s, [r])[0] == want
@@ -82,14 +86,14 @@ def test_plan_and_evaluation_decide_through_the_one_rule():
 
 def test_affine_model_estimates_on_exact_numbers():
     f = KindFit(2e-8, 1e-7, 1e-8, 4e-8, 5e-8, 2e-7, 3, extra={"a_B": 1e-3, "a_R": 2e-7})
-    e = cost.MODELS["affine"][1](f, "bvh", 1 << 16)  # N log2 N = 65536 * 16 = 1,048,576
-    assert (e.build, e.build_low, e.build_high) == pytest.approx((1e-3 + 2e-8 * 1048576, 1e-3 + 1e-8 * 1048576,
+    e = ev.COMPARED_MODELS["affine"][1](f, "bvh", 1 << 16)  # N log2 N = 65536 * 16 = 1,048,576
+    assert (e.build_time, e.build_low, e.build_high) == pytest.approx((1e-3 + 2e-8 * 1048576, 1e-3 + 1e-8 * 1048576,
                                                                   1e-3 + 4e-8 * 1048576), rel=1e-12)
     assert (e.per_ray, e.per_ray_low, e.per_ray_high) == pytest.approx((2e-7 + 1.6e-6, 2e-7 + 8e-7, 2e-7 + 3.2e-6), rel=1e-12)
 
 
 def test_interleaved_rotates_the_order_each_round_and_keeps_each_jobs_results_in_order():
-    from hybrid_raycast.core.decide.measurements import interleaved
+    from hybrid_raycast.core.decide.load_watch import interleaved
 
     log = []
     jobs = {k: (lambda k=k: log.append(k) or len(log)) for k in ("a", "b", "c")}
@@ -101,7 +105,7 @@ def test_interleaved_rotates_the_order_each_round_and_keeps_each_jobs_results_in
 def test_in_passes_runs_every_scene_once_a_pass_with_the_order_rotated_by_the_pass():
     """Two scenes, three passes: pass r runs scene 0's jobs, then scene 1's, each rotated by r,
     and each scene's jobs are made again for every pass."""
-    from hybrid_raycast.core.decide.measurements import in_passes
+    from hybrid_raycast.core.decide.load_watch import in_passes
 
     log, made = [], []
 
@@ -124,18 +128,18 @@ def test_measure_break_evens_measures_each_scene_in_passes_with_its_own_medians(
     each BreakEven takes the medians of its own scene's passes and keeps the last pass's
     structures only."""
     from hybrid_raycast.core import scenes as S
-    from hybrid_raycast.core.decide import measurements as M
+    from hybrid_raycast.core.decide import truth
 
     order = []
-    real = M._measure
+    real = truth.measure_and_keep
 
-    def spy(mesh, kind, o, d, threads, config, builds=None):
+    def spy(mesh, kind, o, d, threads=None, config=None, builds=None):
         order.append((mesh.triangle_count, kind))
         return real(mesh, kind, o, d, threads, config, builds)
 
-    monkeypatch.setattr(M, "_measure", spy)
+    monkeypatch.setattr(truth, "measure_and_keep", spy)
     a, b = S.torus(800), S.sphere(1500)
-    got = M.measure_break_evens([(a, 500), (b, 700)], ("grid", "bvh"), repeats=3)
+    got = truth.measure_break_evens([(a, 500), (b, 700)], ("grid", "bvh"), repeats=3)
     na, nb = a.triangle_count, b.triangle_count
     order = [x for x in order if x[0] in (na, nb)]  # not warm_up's tiny scene
     assert [n for n, _ in order] == [na, na, nb, nb] * 3
@@ -170,7 +174,7 @@ class _FakeShares:
 def test_interleaved_takes_a_disturbed_round_again_and_keeps_the_least_disturbed(monkeypatch):
     """A round during which other processes took more than ``quiet`` of the CPU is run again
     (up to ``retries`` times); the quietest take is kept and its share and takes recorded."""
-    from hybrid_raycast.core.decide import measurements as M
+    from hybrid_raycast.core.decide import load_watch as M
 
     log = []
     jobs = {k: (lambda k=k: log.append(k) or len(log)) for k in ("a", "b")}
@@ -204,7 +208,7 @@ def test_others_share_sees_a_process_that_spins_beside_a_sleeping_one():
     import sys
     import time
 
-    from hybrid_raycast.core.decide.measurements import OthersShare
+    from hybrid_raycast.core.decide.load_watch import OthersShare
 
     with OthersShare() as short:
         pass
@@ -417,8 +421,8 @@ def test_power_model_recovers_exact_exponents_and_estimates_on_exact_numbers():
     assert cost.fit_constants(f, "power") == pytest.approx(
         {"build at N_REF": 2e-8 * 2.0 ** 22, "p_B": 1.1, "per ray at N_REF": 1e-7 * 16 ** 0.8, "p_R": 0.8}, rel=1e-9)
     e = cost.MODELS["power"][1](f, "bvh", 1 << 16)  # N log2 N = 1,048,576, log2 N = 16
-    assert (e.build, e.per_ray) == pytest.approx((2e-8 * 1048576 ** 1.1, 1e-7 * 16 ** 0.8), rel=1e-9)
-    assert e.build_low <= e.build <= e.build_high
+    assert (e.build_time, e.per_ray) == pytest.approx((2e-8 * 1048576 ** 1.1, 1e-7 * 16 ** 0.8), rel=1e-9)
+    assert e.build_low <= e.build_time <= e.build_high
 
 
 def test_power_model_on_close_sizes_is_the_affine_fit():
@@ -429,7 +433,7 @@ def test_power_model_on_close_sizes_is_the_affine_fit():
     f = cost.fit(recs, ("bvh",), model="power")["bvh"]
     assert (f.extra["a_B"], f.c_B, f.extra["p_B"]) == pytest.approx((1e-3, 2e-8 * 2.0 ** 20, 1.0), rel=1e-6)
     e = cost.MODELS["power"][1](f, "bvh", 20000)
-    assert e.build == pytest.approx(1e-3 + 2e-8 * cost.nlog2n(20000), rel=1e-6)
+    assert e.build_time == pytest.approx(1e-3 + 2e-8 * cost.nlog2n(20000), rel=1e-6)
 
 
 def _lawful_records(ns=(1000, 4000, 16000, 64000, 256000)):
@@ -470,7 +474,7 @@ def test_a_plan_below_the_floor_keeps_the_grid_without_a_sample_and_samples_abov
 
 
 def test_the_evaluated_hybrid_pays_no_estimate_below_the_floor():
-    s = ev.SceneResult("x", 1000, 10, ev.Cost(0.01, 1e-6), {"bvh": ev.Cost(0.02, 1e-7)}, {"bvh": ev.Cost(0.02, 1e-7)},
+    s = ev.SceneResult("x", 1000, 10, cost.Cost.point("grid", 0.01, 1e-6), costs_of(bvh=(0.02, 1e-7)), costs_of(bvh=(0.02, 1e-7)),
                        1e-6, 0.005, 100, floor=500.0)
     t = ev.hybrid_totals(s, [400.0, 600.0])
     assert t["hybrid"].tolist() == pytest.approx([0.01 + 400e-6, 0.01 + 0.005 + 600e-6])
@@ -605,9 +609,9 @@ def test_terms_model_recovers_exact_constants_and_estimates_the_formula():
     assert (f.c_B_low, f.c_B_high) == pytest.approx((0.159, 0.159), rel=1e-9)  # no scatter: no interval
     est = cost.MODELS["terms"][1]
     for n in (500, 12345, 65536, 3_000_000):
-        assert est(f, "bvh", n).build == pytest.approx(_terms_law(n), rel=1e-9)
+        assert est(f, "bvh", n).build_time == pytest.approx(_terms_law(n), rel=1e-9)
     # 65,536 triangles by hand: log2 N - 10 = 6, N / 65,536 = 1, log2 N - 16 = 0
-    assert est(f, "bvh", 65536).build == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
+    assert est(f, "bvh", 65536).build_time == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
     # per ray: the power model's, stated at log2 N = 16
     assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-7 * 16 ** 0.8, 0.8), rel=1e-9)
     assert est(f, "bvh", 1 << 12).per_ray == pytest.approx(1e-7 * 12 ** 0.8, rel=1e-9)
@@ -639,7 +643,7 @@ def test_terms_model_estimates_a_scene_below_the_calibration_as_the_smallest_sce
     make a 2-triangle build 15 - 4 x 9 = -21 ms): such a scene costs the smallest scene's build."""
     f = cost.fit(_terms_records(), ("bvh",), model="terms")["bvh"]
     assert _terms_law(2) < 0
-    assert cost.MODELS["terms"][1](f, "bvh", 2).build == pytest.approx(_terms_law(500), rel=1e-9)
+    assert cost.MODELS["terms"][1](f, "bvh", 2).build_time == pytest.approx(_terms_law(500), rel=1e-9)
 
 
 def test_terms_model_with_too_few_scenes_or_sizes_is_the_power_model():
@@ -659,8 +663,8 @@ def test_terms_model_spread_brackets_measured_over_fitted():
         r.kinds["bvh"].build_time *= q
     f = cost.fit(recs, ("bvh",), model="terms")["bvh"]
     e = cost.MODELS["terms"][1](f, "bvh", 200000)
-    assert e.build_low < e.build < e.build_high
-    assert e.build_low / e.build == pytest.approx(f.c_B_low / f.c_B, rel=1e-12)
+    assert e.build_low < e.build_time < e.build_high
+    assert e.build_low / e.build_time == pytest.approx(f.c_B_low / f.c_B, rel=1e-12)
 
 
 # -- Embree's build: ln T_B = a + b u + c u^2, u = ln(N / N_REF) -----------------------------
@@ -690,14 +694,14 @@ def test_log_quadratic_build_recovers_exact_constants_and_estimates_the_formula(
     assert (f.c_B, f.c_B_low, f.c_B_high) == pytest.approx((0.017, 0.017, 0.017), rel=1e-9)
     est = cost.MODELS["terms"][1]
     for n in (500, 777, 12345, 65536, 400000, 1000000):
-        assert est(f, "embree", n).build == pytest.approx(_logquad_law(n), rel=1e-9)
+        assert est(f, "embree", n).build_time == pytest.approx(_logquad_law(n), rel=1e-9)
     # 262,144 = 4 x 65,536 by hand: u = ln 4, T = 0.017 x 4^0.92 x exp(0.066 (ln 4)^2)
-    assert est(f, "embree", 262144).build == pytest.approx(0.017 * 4 ** 0.92 * math.exp(0.066 * math.log(4) ** 2), rel=1e-9)
+    assert est(f, "embree", 262144).build_time == pytest.approx(0.017 * 4 ** 0.92 * math.exp(0.066 * math.log(4) ** 2), rel=1e-9)
     # per ray: the power model's, stated at log2 N = 16
     assert (f.c_R, f.extra["p_R"]) == pytest.approx((1e-8 * 16 ** 1.5, 1.5), rel=1e-9)
     # 1,048,576 lies above the largest scene: the slope there carries on (tested below), so the
     # anchors are checked on the estimate, the ones inside the range on the formula too
-    anchors = {f"build at {n:,}": est(f, "embree", n).build for n in cost.BUILD_ANCHORS}
+    anchors = {f"build at {n:,}": est(f, "embree", n).build_time for n in cost.BUILD_ANCHORS}
     assert anchors["build at 16,384"] == pytest.approx(_logquad_law(16384), rel=1e-9)
     assert cost.fit_constants(f, "terms", per_ray=False) == pytest.approx(anchors, rel=1e-12)
     assert cost.fit_coefficients(f, "terms") == pytest.approx(
@@ -722,7 +726,7 @@ def test_log_quadratic_build_is_the_parabola_in_log_space_with_scatter():
     ref = np.polyfit(ln_n, y, 2)
     est = cost.MODELS["terms"][1]
     for n in (500, 7000, 65536, 300000, 1000000):
-        assert est(f, "embree", n).build == pytest.approx(math.exp(np.polyval(ref, math.log(n))), rel=1e-9)
+        assert est(f, "embree", n).build_time == pytest.approx(math.exp(np.polyval(ref, math.log(n))), rel=1e-9)
     a, b, c = f.extra["coef_B"]
     l0 = math.log(65536)
     assert (ref[0], ref[1], ref[2]) == pytest.approx((c, b - 2 * c * l0, a - b * l0 + c * l0 * l0), rel=1e-9)
@@ -734,7 +738,7 @@ def test_log_quadratic_build_is_the_parabola_in_log_space_with_scatter():
 
 def test_log_quadratic_build_below_the_smallest_scene_is_the_smallest_scenes():
     f = cost.fit(_logquad_records(), ("embree",), model="terms")["embree"]
-    assert cost.MODELS["terms"][1](f, "embree", 3).build == pytest.approx(_logquad_law(500), rel=1e-9)
+    assert cost.MODELS["terms"][1](f, "embree", 3).build_time == pytest.approx(_logquad_law(500), rel=1e-9)
 
 
 def test_log_quadratic_build_never_falls_with_n_up_to_100m_triangles():
@@ -749,20 +753,20 @@ def test_log_quadratic_build_never_falls_with_n_up_to_100m_triangles():
     rising_late = lambda n: _logquad_law(n, b=0.5, c=0.25 / math.log(16))  # noqa: E731
     for law in (turning, rising_late, _logquad_law):
         f = cost.fit(_logquad_records(law), ("embree",), model="terms")["embree"]
-        b = [est(f, "embree", int(n)).build for n in sizes]
+        b = [est(f, "embree", int(n)).build_time for n in sizes]
         assert all(x <= y * (1 + 1e-12) for x, y in zip(b, b[1:])), "the build estimate falls somewhere"
     f = cost.fit(_logquad_records(turning), ("embree",), model="terms")["embree"]
     top = turning(524288)
-    assert [est(f, "embree", n).build for n in (524288, 1000000, 10 ** 8)] == pytest.approx([top] * 3, rel=1e-9)
+    assert [est(f, "embree", n).build_time for n in (524288, 1000000, 10 ** 8)] == pytest.approx([top] * 3, rel=1e-9)
     f = cost.fit(_logquad_records(rising_late), ("embree",), model="terms")["embree"]
-    assert [est(f, "embree", n).build for n in (500, 2000, 4096)] == pytest.approx([rising_late(4096)] * 3, rel=1e-9)
+    assert [est(f, "embree", n).build_time for n in (500, 2000, 4096)] == pytest.approx([rising_late(4096)] * 3, rel=1e-9)
     f = cost.fit(_logquad_records(), ("embree",), model="terms")["embree"]
     u_max = math.log(1000000 / 65536)
     slope = 0.92 + 2 * 0.066 * u_max
     for n in (2_000_000, 10 ** 8):
         want = _logquad_law(1000000) * (n / 1000000) ** slope
-        assert est(f, "embree", n).build == pytest.approx(want, rel=1e-9)
-        assert est(f, "embree", n).build < _logquad_law(n)  # the parabola itself would bend up faster
+        assert est(f, "embree", n).build_time == pytest.approx(want, rel=1e-9)
+        assert est(f, "embree", n).build_time < _logquad_law(n)  # the parabola itself would bend up faster
 
 
 def test_an_unknown_build_form_is_an_error_even_for_a_structure_without_build_terms(monkeypatch):
@@ -789,13 +793,13 @@ def test_log_quadratic_build_survives_save_and_load_and_old_files_estimate_as_be
     back = load(cal.save(tmp_path / "c.json"))
     assert back.fits == cal.fits
     for n in (100, 5000, 65536, 3_000_000):
-        assert back.estimate("embree", n).build == pytest.approx(cal.estimate("embree", n).build, rel=1e-12)
+        assert back.estimate("embree", n).build_time == pytest.approx(cal.estimate("embree", n).build_time, rel=1e-12)
     assert back.refitted().fits["embree"].extra["coef_B"] == pytest.approx(cal.fits["embree"].extra["coef_B"], rel=1e-12)
     old = cost.KindFit(0.159, 1e-7, 0.159, 0.159, 1e-7, 1e-7, 7,
                        extra={"terms_B": ["1", "log2n-10", "n", "n(log2n-16)"], "coef_B": [0.015, 0.004, 0.12, 0.015],
                               "n_min": 500, "p_R": 1.0, "x_ref_R": 16.0})
     old_back = load(Calibration({"embree": old}, source="hand").save(tmp_path / "old.json"))
-    assert old_back.estimate("embree", 65536).build == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
+    assert old_back.estimate("embree", 65536).build_time == pytest.approx(0.015 + 6 * 0.004 + 0.12, rel=1e-12)
     for extra, what in (({"form_B": "cubic"}, "unknown build form 'cubic' of 'embree'"),
                         ({"coef_B": [1.0, 2.0]}, "three finite coefficients")):
         d = cal.to_dict()
@@ -815,7 +819,7 @@ def test_stating_constants_at_a_reference_changes_no_prediction():
     old.c_R_low = old.c_R_high = old.c_R
     for n in (700, 30000, 2_000_000):
         a, b = cost.MODELS["power"][1](f, "bvh", n), cost.MODELS["power"][1](old, "bvh", n)
-        assert (a.build, a.per_ray) == pytest.approx((b.build, b.per_ray), rel=1e-12)
+        assert (a.build_time, a.per_ray) == pytest.approx((b.build_time, b.per_ray), rel=1e-12)
     rng = np.random.default_rng(1)
     ns, cells, q = rng.integers(500, 10 ** 6, 12), rng.uniform(3, 60, 12), rng.uniform(0.8, 1.2, 12)
     # laws with noise that no model fits exactly: the grid's in cells, the BVH's in log2 N

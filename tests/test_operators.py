@@ -1,9 +1,7 @@
 """The operators in background mode: results, every failure, the stale flag, cancelling."""
 
 import json
-import math
 
-import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
@@ -234,7 +232,7 @@ def test_a_calibration_that_stayed_disturbed_is_reported_as_a_warning(addon):
     """The busy-machine note of a calibration (other programs took the CPU through every
     retake) reaches the user as a WARNING; its other notes do not."""
     mod = addon.operators.calibrate
-    m = addon.core.decide.measurements
+    m = addon.core.decide.load_watch
     busy = m.quiet_notes([(0.4, 1 + m.QUIET_RETRIES), (0.01, 1)], m.QUIET_SHARE)
     cal = addon.core.decide.Calibration({}, notes=["embree skipped: not here"] + busy)
     msgs = mod.apply_calibration(None, {"calibration": cal, "path": "/tmp/x.json", "kinds": ("bvh", "embree")})

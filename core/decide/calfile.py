@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, CountFit, Estimate, KindFit, Measurement, SceneRecord,
+from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, CountFit, KindFit, Measurement, SceneRecord,
                    Prior, describe_fit, fit, fit_counts, prior)
 
-#: bump when the JSON layout or the meaning of a field changes.  3 (issue 14): constants
+#: bump when the JSON layout or the meaning of a field changes.  3: constants
 #: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
 #: and the 'terms' build model; a file of format 2 has neither field and reads with its old
 #: meaning (reference 1 or 0), so it still loads.  A 'terms' fit's ``form_B`` names its build
@@ -125,7 +125,7 @@ class Calibration:
     def kinds(self) -> tuple[str, ...]:
         return tuple(self.fits)
 
-    def estimate(self, kind: str, n: int) -> Estimate:
+    def estimate(self, kind: str, n: int) -> Cost:
         """Build and per-ray time of ``kind`` for an N-triangle scene, with the interval."""
         if kind not in self.fits:
             raise KeyError(f"no calibration constants for {kind!r} (calibrated: {', '.join(self.fits) or 'none'})")
@@ -138,7 +138,7 @@ class Calibration:
 
         A plan multiplies its sample's time per ray by it: a small batch pays the lockstep
         traversal's fixed per-step cost over few rays, so it overstates a large workload's
-        time per ray (measured 1.2-1.5x at K = 16,384, over 3x at K = 1,024).  (1, 1, 1)
+        time per ray, the more so the smaller K.  (1, 1, 1)
         when the calibration holds no grid samples.
         """
         ladder = sorted({kk for r in self.scenes for kk in r.grid_samples})
@@ -327,13 +327,13 @@ def load_default() -> Calibration:
     return cal
 
 
-def load_or_default(path, *, recalibrate: bool = False, progress=None, **calibrate_kw) -> tuple[Calibration, str]:
+def load_or_default(path) -> tuple[Calibration, str]:
     """A usable calibration and a one-line message saying where it came from; never raises.
 
-    Loads ``path`` when it holds a calibration made here.  Otherwise (missing, corrupt,
-    foreign) it either recalibrates (``recalibrate=True``; the result is saved to
-    ``path``, with ``progress`` and ``calibrate_kw`` passed to ``calibrate``) or returns
-    the shipped defaults.  ``path=None`` means the shipped defaults.
+    Loads ``path`` when it holds a calibration made here; otherwise (missing, corrupt,
+    foreign) returns the shipped defaults, and the message says why.  ``path=None`` means
+    the shipped defaults.  Measuring this machine is ``measurements.calibrate`` (the
+    Calibrate operator, the CLI's ``calibrate``), never a side effect of loading.
     """
     if path is None:
         cal = load_default()
@@ -345,20 +345,6 @@ def load_or_default(path, *, recalibrate: bool = False, progress=None, **calibra
         reason = str(e)
     except Exception as e:  # never crash on a bad file
         reason = f"{path}: unexpected {type(e).__name__}: {e}"
-    if recalibrate:
-        try:
-            from .measurements import calibrate
-
-            cal = calibrate(progress=progress, **calibrate_kw)
-        except Exception as e:
-            cal = load_default()
-            return cal, f"{reason}; recalibration failed ({type(e).__name__}: {e}); using {cal.source}"
-        try:
-            cal.save(path)
-            where = f"saved to {path}"
-        except OSError as e:
-            where = f"could not save to {path}: {e.strerror or e}"
-        return cal, f"{reason}; recalibrated in {cal.duration_s:.0f} s, {where}"
     cal = load_default()
     return cal, f"{reason}; using {cal.source} (run calibrate to measure this machine)"
 

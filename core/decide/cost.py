@@ -7,17 +7,18 @@ hierarchical structure and shoot M rays in each scene i, then
     c_R = (1/s) sum_i T_R(i) / (M(i) log2 N(i))      (per-ray constant)
 
 so that a new scene of N triangles is estimated at T_B ~ c_B N log2 N and
-t ~ c_R log2 N per ray (``model='paper'``).  ``model='affine'`` adds a fixed cost to
-each, T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N (least squares on relative
-residuals): per-call overheads that N log2 N cannot carry inflate the paper's ratios on
-small scenes.  ``model='power'`` fits T_B ~ c_B (N log2 N / X_REF)^p_B and
-t ~ c_R (log2 N / L_REF)^p_R by least squares on log times.  ``model='terms'`` (the
-default, issue 14) writes the numpy BVH's build as a sum of nonnegative costs in N,
-a + d (log2 N - 10) + b n + c n (log2 N - 16) with n = N / N_REF, which follows its U-shaped
-build per triangle from 500 to 1M triangles, and Embree's as a quadratic in log-log,
-ln T_B = a + b u + c u^2 with u = ln(N / N_REF) (``BUILD_FORMS``); it keeps the power model
-for the time per ray and for any structure without a build form.  The interval of each
-constant is the spread across the calibration scenes (``low``/``high``: 10th/90th percentiles of the per-scene values).
+t ~ c_R log2 N per ray.  The shipped models refine that form (the paper's own, and the
+others the evaluation compares, are ``evaluate.COMPARED_MODELS``).  ``model='power'`` fits
+T_B ~ c_B (N log2 N / X_REF)^p_B and t ~ c_R (log2 N / L_REF)^p_R by least squares on log
+times (an affine a + c x where the scenes' sizes are too close for an exponent).
+``model='terms'`` (the default) writes the numpy BVH's build as a sum of nonnegative costs
+in N, a + d (log2 N - 10) + b n + c n (log2 N - 16) with n = N / N_REF, which follows its
+U-shaped build per triangle from 500 to 1M triangles, and Embree's as a quadratic in
+log-log, ln T_B = a + b u + c u^2 with u = ln(N / N_REF) (``BUILD_FORMS``); it keeps the
+power model for the time per ray and for any structure without a build form.  The interval
+of each constant is the spread across the calibration scenes (``low``/``high``: 10th/90th
+percentiles of the per-scene values).  Per-ray times of a plan come from the sample's work
+counts where the calibration has count models (``fit_counts``).
 
 The break-even (section 3, step 4): the grid is built already, so H pays for itself
 after R* = T_B^H / (t_G - t_H) rays when t_G > t_H, never otherwise.  ``break_even`` is
@@ -35,10 +36,11 @@ import numpy as np
 DEFAULT_MODEL = "terms"
 DEFAULT_SPREAD = (10.0, 90.0)
 
-#: the scene size every fitted constant is stated at (issue 14): a constant is a time at
-#: N_REF triangles, or a slope there, so that two calibrations agree on it even where they
-#: trade an intercept against a slope far from the data (a + b log2 N's a was the time at
-#: N = 1, 128.7% apart between two calibrations in a row)
+#: the scene size every fitted constant is stated at: a constant is a time at N_REF
+#: triangles, or a slope there, so that two calibrations agree on it even where they trade
+#: an intercept against a slope far from the data (a + b log2 N's a is the time at N = 1,
+#: which two calibrations in a row put far apart; BENCHMARKS.md, "Calibration and plan
+#: repeatability")
 N_REF = 65_536
 L_REF = 16.0  # log2 N_REF
 X_REF = float(N_REF * 16)  # N_REF log2 N_REF
@@ -139,48 +141,64 @@ class KindFit:
     c_R_low: float
     c_R_high: float
     scenes: int
-    #: parameters of models beyond the paper's two constants (empty for 'paper')
+    #: parameters of models beyond the paper's two constants (empty for the paper's own)
     extra: dict = field(default_factory=dict)
 
 
 @dataclass
-class Estimate:
-    """Estimated build time and per-ray time (seconds) of one structure for N triangles."""
+class Cost:
+    """One structure's cost in seconds: its build time and time per ray, each with an
+    interval [low, high], whether they were measured (the plan's grid, an evaluation's
+    truth) or estimated (``Calibration.estimate``), and, once a plan has weighed it against
+    the grid, its break-even: the rays after which it beats the (already built) grid, inf
+    when it never does, None for the grid itself or before any plan.  The one cost type of
+    the decision: the estimate, the plan's candidates, the rule's inputs and the
+    evaluation's truths are all Costs."""
 
     kind: str
-    build: float
+    build_time: float
     build_low: float
     build_high: float
     per_ray: float
     per_ray_low: float
     per_ray_high: float
+    measured: bool = False
+    break_even: float | None = None
+    break_even_low: float | None = None
+    break_even_high: float | None = None
 
+    @classmethod
+    def point(cls, kind: str, build_time: float, per_ray: float, *, measured: bool = False) -> "Cost":
+        """A cost known as two figures, with no interval (low = high = the figure)."""
+        return cls(kind, float(build_time), float(build_time), float(build_time), float(per_ray), float(per_ray),
+                   float(per_ray), measured)
+
+    def total_time(self, rays, bound: str = "point", include_build: bool = True):
+        """T_build + R t_ray with the point, 'low' or 'high' figures (R may be an array)."""
+        b, t = {"point": (self.build_time, self.per_ray), "low": (self.build_low, self.per_ray_low),
+                "high": (self.build_high, self.per_ray_high)}[bound]
+        return (b if include_build else 0.0) + np.asarray(rays, np.float64) * t
+
+    def to_dict(self) -> dict:
+        """Every field; a break-even that is infinite (never) or unknown as None (JSON has no
+        infinity; null in a break-even means 'never')."""
+        d = dict(self.__dict__)
+        for k in ("break_even", "break_even_low", "break_even_high"):
+            d[k] = float(d[k]) if d[k] is not None and math.isfinite(d[k]) else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, kind: str = "") -> "Cost":
+        """The inverse of ``to_dict``; also reads a point cost written as {'build', 'per_ray'}
+        (the evaluation's files before its costs carried intervals)."""
+        if "build_time" not in d:
+            return cls.point(d.get("kind", kind), d["build"], d["per_ray"], measured=bool(d.get("measured", False)))
+        return cls(**d)
 
 
 # -- the model (the hook for refinements) ------------------------------------------------------
 
-def _spread(values, spread) -> tuple[float, float, float]:
-    v = np.asarray(values, np.float64)
-    mean = float(v.mean())
-    lo, hi = (float(x) for x in np.percentile(v, spread))
-    return mean, min(lo, mean), max(hi, mean)
-
-
-def _fit_paper(records: list[SceneRecord], kind: str, spread) -> KindFit:
-    """The paper's two constants: plain means of the per-scene ratios (section 3)."""
-    have = [r for r in records if kind in r.kinds]
-    cb, cb_lo, cb_hi = _spread([r.c_B(kind) for r in have], spread)
-    cr, cr_lo, cr_hi = _spread([r.c_R(kind) for r in have], spread)
-    return KindFit(cb, cr, cb_lo, cb_hi, cr_lo, cr_hi, len(have))
-
-
-def _estimate_paper(fit: KindFit, kind: str, n: int) -> Estimate:
-    """T_B ~ c_B N log2 N, t ~ c_R log2 N (section 3)."""
-    a, b = nlog2n(n), log2n(n)
-    return Estimate(kind, fit.c_B * a, fit.c_B_low * a, fit.c_B_high * a, fit.c_R * b, fit.c_R_low * b, fit.c_R_high * b)
-
-
-def _affine_lsq(x, y) -> tuple[float, float]:
+def affine_lsq(x, y) -> tuple[float, float]:
     """(a, c) >= 0 minimising sum ((a + c x_i) / y_i - 1)^2: least squares on relative
     residuals, so a 500-triangle scene weighs as much as a 1M one; a < 0 falls back on a = 0."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
@@ -192,35 +210,6 @@ def _affine_lsq(x, y) -> tuple[float, float]:
     if not (a >= 0 and c > 0):
         a, c = 0.0, float(np.sum(x / y) / np.sum((x / y) ** 2))
     return float(a), float(c)
-
-
-def _fit_affine(records: list[SceneRecord], kind: str, spread) -> KindFit:
-    """T_B ~ a_B + c_B N log2 N and t ~ a_R + c_R log2 N: the paper's terms plus a fixed
-    cost each (per-call overheads that N log2 N cannot carry inflate the ratio on small
-    scenes).  The interval scales the slopes by the spread of measured / fitted over the scenes."""
-    have = [r for r in records if kind in r.kinds]
-    xb, yb = [nlog2n(r.triangles) for r in have], [r.kinds[kind].build_time for r in have]
-    xr, yr = [log2n(r.triangles) for r in have], [r.kinds[kind].per_ray for r in have]
-    ab, cb = _affine_lsq(xb, yb)
-    ar, cr = _affine_lsq(xr, yr)
-
-    def spread_of(x, y, a, c):
-        q = [yi / (a + c * xi) for xi, yi in zip(x, y) if a + c * xi > 0]
-        if not q:
-            return [1.0, 1.0]
-        lo, hi = (float(v) for v in np.percentile(q, spread))
-        return [min(lo, 1.0), max(hi, 1.0)]
-
-    qb, qr = spread_of(xb, yb, ab, cb), spread_of(xr, yr, ar, cr)
-    return KindFit(cb, cr, cb * qb[0], cb * qb[1], cr * qr[0], cr * qr[1], len(have), extra={"a_B": ab, "a_R": ar})
-
-
-def _estimate_affine(fit: KindFit, kind: str, n: int) -> Estimate:
-    """a + c x with the interval on the slope; with no fixed terms (a = 0) this is 'paper'."""
-    x, y = nlog2n(n), log2n(n)
-    a_b, a_r = fit.extra.get("a_B", 0.0), fit.extra.get("a_R", 0.0)
-    return Estimate(kind, a_b + fit.c_B * x, a_b + fit.c_B_low * x, a_b + fit.c_B_high * x,
-                    a_r + fit.c_R * y, a_r + fit.c_R_low * y, a_r + fit.c_R_high * y)
 
 
 def _spans(x, min_ratio: float) -> bool:
@@ -244,8 +233,9 @@ def _loglog_fit(x, y) -> tuple[float, float]:
 
 #: the spread of x a power law's exponent needs: a decade of N log2 N for builds, 1.5 for
 #: per-ray times in log2 N (about 1k to 30k triangles).  Narrower calibration sets get the
-#: affine fit (p = 1): the 'tiny' set's 500-1,000 triangles gave p_B near 0 and then a
-#: 20k-triangle scene an Embree break-even of 40 rays
+#: affine fit (p = 1): over the 'tiny' set's 500-1,000 triangles a fitted exponent says
+#: little about larger scenes (p_B came out near 0, a build that hardly grows with N, and so
+#: far too low a break-even beyond the set)
 POWER_MIN_RATIO = {"build": 10.0, "per_ray": 1.5}
 
 
@@ -255,7 +245,7 @@ def _power_or_affine(x, y, min_ratio: float, x_ref: float) -> tuple[float, float
     if _spans(x, min_ratio):
         c, p = _loglog_fit(x, y)
         return 0.0, c * x_ref ** p, p
-    a, c = _affine_lsq(x, y)
+    a, c = affine_lsq(x, y)
     return a, c * x_ref, 1.0
 
 
@@ -273,7 +263,8 @@ def _fit_power(records: list[SceneRecord], kind: str, spread) -> KindFit:
     space: c_B is the build time and c_R the time per ray of an N_REF-triangle scene (65,536),
     p_B and p_R the exponents.  A power law bends where the affine model needs a fixed term,
     and with no constraint to switch on or off its constants move smoothly with the timings
-    (issue 14: two calibrations in a row gave affine build constants 90% apart); stating c at
+    (the affine fit's build constants jump between two calibrations in a row where its
+    fixed term is dropped in one and kept in the next); stating c at
     N_REF instead of at x = 1 keeps it within the data, where the exponent cannot trade
     against it.  Where the calibration scenes' sizes are too close to measure an exponent
     (``POWER_MIN_RATIO``) it is the affine model a + c (x / x_ref).  The interval scales c by
@@ -289,22 +280,22 @@ def _fit_power(records: list[SceneRecord], kind: str, spread) -> KindFit:
                    extra={"p_B": pb, "p_R": pr, "a_B": ab, "a_R": ar, "x_ref_B": X_REF, "x_ref_R": L_REF})
 
 
-def _estimate_power(fit: KindFit, kind: str, n: int) -> Estimate:
+def _estimate_power(fit: KindFit, kind: str, n: int) -> Cost:
     """a + c (x / x_ref)^p with the interval on c (a = 0 where the exponent was fitted).
     x_ref is 1 in files of format 2 (c was the factor of x^p then)."""
     e = fit.extra
     xb = (nlog2n(n) / e.get("x_ref_B", 1.0)) ** e.get("p_B", 1.0)
     yr = (log2n(n) / e.get("x_ref_R", 1.0)) ** e.get("p_R", 1.0)
     a_b, a_r = e.get("a_B", 0.0), e.get("a_R", 0.0)
-    return Estimate(kind, a_b + fit.c_B * xb, a_b + fit.c_B_low * xb, a_b + fit.c_B_high * xb,
-                    a_r + fit.c_R * yr, a_r + fit.c_R_low * yr, a_r + fit.c_R_high * yr)
+    return Cost(kind, a_b + fit.c_B * xb, a_b + fit.c_B_low * xb, a_b + fit.c_B_high * xb,
+                a_r + fit.c_R * yr, a_r + fit.c_R_low * yr, a_r + fit.c_R_high * yr)
 
 
-# -- the 'terms' model: a build that is a sum of costs in N (issue 14) -------------------------
+# -- the 'terms' model: a build that is a sum of costs in N ------------------------------------
 
 #: where the build's fixed cost is stated: a 1,024-triangle scene, among the small
-#: calibration scenes whose builds it dominates (stated at N_REF instead, two calibrations in
-#: a row gave it 14% apart; here 3.5%)
+#: calibration scenes whose builds it dominates (stated at N_REF instead, far from the
+#: scenes that measure it, it moves several times as much between two calibrations in a row)
 L_FIXED = 10.0
 
 
@@ -320,21 +311,21 @@ def build_terms(n: float) -> dict[str, float]:
 
 
 #: the build terms of the 'sum' form (``build_terms``), chosen by leave-one-out on the
-#: calibration scenes and on held-out meshes (BENCHMARKS.md, issue 14).  The numpy BVH's
-#: build per triangle is U-shaped in N (15-20 us at 1k triangles, a fixed and a per-level
-#: cost; 1.7-2.2 us at 70k-300k; 2.8-3 us above 600k, where its arrays leave the cache):
-#: all four terms follow it (held-out build error 7-8%, against 41% for the power law), and
-#: dropping either 'log2n-10' or 'n(log2n-16)' doubles that
+#: calibration scenes and on held-out meshes.  The numpy BVH's build per triangle is
+#: U-shaped in N: high on small scenes (a fixed and a per-level cost), lowest in between,
+#: higher again on large ones, where its arrays leave the cache.  All four terms are needed
+#: to follow it: with them the held-out build error is far below the power law's, and
+#: dropping either 'log2n-10' or 'n(log2n-16)' raises it markedly (BENCHMARKS.md, "Studies")
 _FULL_TERMS = ("1", "log2n-10", "n", "n(log2n-16)")
 BUILD_TERMS = {"bvh": _FULL_TERMS}
 
 #: the form of each structure's build in the 'terms' model: 'sum', the nonnegative sum of
 #: its ``BUILD_TERMS``; 'log-quadratic', ln T_B = a + b u + c u^2 with u = ln(N / N_REF)
 #: (``_fit_log_quadratic``).  A structure in neither table gets the power model.  Embree's
-#: build is log-quadratic: on the held-out meshes the four-term sum ran 13% low (median
-#: |error| 13%), the log-quadratic 4% low (7%), and it has the lower leave-one-out build and
-#: break-even errors too (scripts/build_model_study.py, issue 14).  On the numpy BVH it is
-#: not clearly better (held-out build +23% against +15%), so that stays a sum
+#: build is log-quadratic: on the held-out meshes the four-term sum runs low where the
+#: log-quadratic is nearly unbiased and closer, and the log-quadratic has the lower
+#: leave-one-out build and break-even errors too.  On the numpy BVH it is not clearly better,
+#: so that stays a sum (BENCHMARKS.md, "Studies")
 BUILD_FORMS = {"bvh": "sum", "embree": "log-quadratic"}
 
 
@@ -428,7 +419,7 @@ def _fit_terms(records: list[SceneRecord], kind: str, spread) -> KindFit:
     return KindFit(cb, power.c_R, cb * qb[0], cb * qb[1], power.c_R_low, power.c_R_high, len(have), extra=extra)
 
 
-def _estimate_terms(fit: KindFit, kind: str, n: int) -> Estimate:
+def _estimate_terms(fit: KindFit, kind: str, n: int) -> Cost:
     """sum_j b_j term_j(max(N, n_min)), the interval as the ratio of c_B's; the power model's
     per-ray time (and build, for a structure fitted without terms)."""
     e = fit.extra
@@ -440,24 +431,24 @@ def _estimate_terms(fit: KindFit, kind: str, n: int) -> Estimate:
         build = _terms_value(e["terms_B"], e["coef_B"], max(int(n), int(e.get("n_min", 1))))
     lo, hi = (fit.c_B_low / fit.c_B, fit.c_B_high / fit.c_B) if fit.c_B > 0 else (1.0, 1.0)
     p = _estimate_power(fit, kind, n)
-    return Estimate(kind, build, build * lo, build * hi, p.per_ray, p.per_ray_low, p.per_ray_high)
+    return Cost(kind, build, build * lo, build * hi, p.per_ray, p.per_ray_low, p.per_ray_high)
 
 
-#: model name -> (fit per kind, estimate).  A refinement keeps its parameters in
-#: KindFit.extra.  'terms' (issue 14) is the default: its numpy BVH build has a held-out
-#: error of 7-8% where 'power' had 41% (BENCHMARKS.md, issue 14; 'power' was the default
-#: before it, 'affine' from issue 4).
-MODELS = {"paper": (_fit_paper, _estimate_paper), "affine": (_fit_affine, _estimate_affine),
-          "power": (_fit_power, _estimate_power), "terms": (_fit_terms, _estimate_terms)}
+#: the shipped calibration models, name -> (fit per kind, estimate); a model keeps its
+#: parameters beyond the two constants in KindFit.extra.  'terms' is the default, 'power'
+#: its per-ray model and its fallback for a set of scenes too narrow to weigh the terms.  The
+#: models the evaluation compares them with (the paper's own two constants, 'affine',
+#: 'median') are ``evaluate.COMPARED_MODELS``
+MODELS = {"power": (_fit_power, _estimate_power), "terms": (_fit_terms, _estimate_terms)}
 
 
-#: the scene sizes a 'terms' build is stated at (issue 14): its time at each, four sizes for
+#: the scene sizes a 'terms' build is stated at: its time at each, four sizes for
 #: its four coefficients (the terms at these sizes form an invertible matrix, so the four
 #: times are the model), all within the calibration set's 500 to 1M triangles.  The
 #: coefficients themselves are not constants two calibrations can agree on: over that range
 #: the four regressors are nearly collinear, so the fit trades one against another (two
-#: calibrations in a row put 'log2n-10' 31-74% apart and the nonnegative fit drops a term
-#: in one and keeps it in the next) while the builds they predict stay close
+#: calibrations in a row put 'log2n-10' far apart, and the nonnegative fit drops a term in
+#: one and keeps it in the next) while the builds they predict stay close
 BUILD_ANCHORS = (1_024, 16_384, 262_144, 1_048_576)
 
 
@@ -469,7 +460,7 @@ def fit_constants(f: KindFit, model: str, *, per_ray: bool = True) -> dict[str, 
     takes each structure's time per ray from those, ``CountFit.constants``)."""
     e = f.extra
     if model == "terms" and "coef_B" in e:
-        out = {f"build at {n:,}": _estimate_terms(f, "", n).build for n in BUILD_ANCHORS}
+        out = {f"build at {n:,}": _estimate_terms(f, "", n).build_time for n in BUILD_ANCHORS}
         ray = {"per ray at N_REF": f.c_R, "p_R": e.get("p_R", 1.0)}
     elif model in ("power", "terms"):
         out = {"build at N_REF" if "x_ref_B" in e else "c_B": f.c_B, "p_B": e.get("p_B", 1.0)}
@@ -530,13 +521,13 @@ def fit(records: list[SceneRecord], kinds, *, model: str = DEFAULT_MODEL, spread
 
 
 
-# -- per-ray times from the grid sample's work counts (issue 14) -------------------------------
+# -- per-ray times from the grid sample's work counts --------------------------------------------
 
 #: log2 of the scene size (16,384 triangles) above which each further level of Embree's tree
 #: costs a ray that hits measurably more: below it Embree's time per ray hardly grows with N
-#: (65-125 ns from 500 to 16k triangles on the calibration scenes), above it by about 40%
-#: (e^0.35) per level for each ray that hits (``hit_above_16k``; the threshold had the
-#: lowest leave-one-out error of 12-16, BENCHMARKS.md, issue 14)
+#: (its tree stays in the cache), above it it grows by a constant factor per level for each
+#: ray that hits (``hit_above_16k``); of the thresholds 12 to 16 this one had the lowest
+#: leave-one-out error (BENCHMARKS.md, "Measurement protocol and model terms")
 L_CACHED = 14.0
 
 
@@ -584,20 +575,20 @@ def _log_columns(x: np.ndarray, names) -> np.ndarray:
                      for j, k in enumerate(names)], axis=1)
 
 
-#: where each count model's constant is stated (issue 14): a count model's '1' coefficient is
-#: its time per ray at these counts, not at zero counts far outside the data, where it traded
-#: against the slopes (the BVH's 'ns x 1' moved 128.7% between two calibrations in a row).
-#: log2n: an N_REF-triangle scene; cells: 15 cells a ray (1 + cells = 16; the calibration
-#: scenes' median is 14); steps and candidates: 8 lockstep steps and 20 candidate pairs a
-#: ray (the calibration scenes' medians are 8.6 and 16).  A term not named here is stated at 0
+#: where each count model's constant is stated: a count model's '1' coefficient is its time
+#: per ray at these counts, not at zero counts far outside the data, where it trades against
+#: the slopes (stated at zero, the BVH's moved far between two calibrations in a row).
+#: log2n: an N_REF-triangle scene; cells: 15 cells a ray (1 + cells = 16, near the
+#: calibration scenes' median); steps and candidates: 8 lockstep steps and 20 candidate
+#: pairs a ray (near the calibration scenes' medians).  A term not named here is stated at 0
 COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0, "steps": 8.0, "candidates": 20.0}
 
 #: the counts a one-count linear model is stated at (``CountFit.constants``): its time per
 #: ray at two counts the calibration scenes span (their sample rays step through 4.6 to 54
 #: cells; they have 2^9 to 2^20 triangles).  Two times are the model, as intercept and slope
 #: are, but each is measured by the scenes near it, where a slope is the difference of two
-#: noisy ends (two calibrations in a row: the grid's slope 34% apart, its time per ray at
-#: 5 cells 0.8% and at 40 cells 19%).  Embree's hit_above_16k: a scene of at most 16k
+#: noisy ends (between two calibrations in a row the grid's slope moves more than either of
+#: its times at the two anchors).  Embree's hit_above_16k: a scene of at most 16k
 #: triangles (or rays that all miss), and 40% of the rays hitting a 2M-triangle scene.
 #: A linear model of several counts is stated, alike, by its times at as many points of
 #: their space as it has coefficients, keyed by the tuple of its counts: the grid's steps and
@@ -752,24 +743,24 @@ class CountFit:
 #: the terms of each count model (``terms``): the grid's time per ray from what its traversal
 #: did for the sample rays, lockstep steps and candidate (ray, reference) pairs
 #: (``UniformGrid.traversal_work``); the numpy BVH's and Embree's from log2 N alone.
-#: The grid was a + b cells, the 3D-DDA's cells along each ray; but the grid jumps over empty
-#: space, so on closed meshes it takes a fifth of those steps, while the calibration's soups
-#: and slivers take about one a cell and test 3-5x more triangles: the cells model ran a
-#: median +11% high on report H's 19 held-out meshes (16 above), steps and candidates 4.3%
-#: (+3.8), leave-one-out 12.3% -> 10.2% (scripts/traversal_study.py, BENCHMARKS.md, issue 14).
+#: The 3D-DDA's cells along each ray (a + b cells, the fallback) misread the grid's work:
+#: the grid jumps over empty space, so on closed meshes it takes far fewer steps than there
+#: are cells, while the calibration's soups and slivers take about one a cell and test more
+#: triangles; so a cells model runs high on held-out meshes, where a model of steps and
+#: candidates follows them closely and has the lower leave-one-out error too (BENCHMARKS.md,
+#: "Studies").
 #: Adding the kernel's tests lowers leave-one-out further but not the held-out break-evens.
 #: The grid sample's cells and references in the BVH's model lowered the error on the
 #: calibration scenes but not on held-out meshes, and made two calibrations in a row predict
-#: per-ray times far apart (the nonnegative fit trades log2 N against references); scripts/
-#: counts_study.py --analyse / --agree and BENCHMARKS.md (issue 14) have the figures.
-#: Embree's is exp(a + b hit_above_16k): a + b log2 N, fitted on relative residuals, ran a
-#: median 10-17% low on the held-out meshes and 40-50% low on the 1M-triangle ones (their hit
-#: rays descend a tree that has left the cache, where the calibration's low stadium-500k and
-#: scatter scenes and high soups pulled the slope flat); exp(a + b hit_above_16k) follows the
-#: held-out meshes within a median 7-11% and halves the leave-one-out error (31-34% -> 16%),
-#: over two calibrations and two reports' truths.  On the numpy BVH it does not help (its
-#: per-ray time is Python rounds per level, not memory), so that stays a + b log2 N
-#: (BENCHMARKS.md, "Embree's time per ray", issue 14).
+#: per-ray times far apart (the nonnegative fit trades log2 N against references).
+#: Embree's is exp(a + b hit_above_16k): a + b log2 N, fitted on relative residuals, runs low
+#: on the held-out meshes and lowest on the largest ones (their hit rays descend a tree that
+#: has left the cache, where the calibration's low stadium-500k and scatter scenes and high
+#: soups pull the slope flat); exp(a + b hit_above_16k) follows the held-out meshes closely
+#: and has the lower leave-one-out error, over calibrations and reports' truths alike.  On
+#: the numpy BVH it does not help (its per-ray time is Python rounds per level, not memory),
+#: so that stays a + b log2 N (BENCHMARKS.md, "Measurement protocol and model terms" and
+#: "Tried and not kept").
 COUNT_TERMS = {
     "grid": ("1", "steps", "candidates"),
     "bvh": ("1", "log2n"),
@@ -783,14 +774,11 @@ COUNT_FALLBACK = {"grid": ("1", "cells")}
 
 #: the form of each count model (``CountFit.form``): nonnegative sums, a + b steps + c
 #: candidates for the grid and a + b log2 N for the numpy BVH; Embree's exp(a + b
-#: hit_above_16k) (``COUNT_TERMS``).  The grid was a power law in (1 + cells) while
-#: calibration timed 131,072-ray batches; with 524,288 (issue 14, third session) the sum
-#: follows the held-out meshes' grid time per ray twice as closely (median 5.7% against
-#: 10.8% on the 19 scenes of docs/report, 10.7% against 18.1% on an earlier report's truths;
-#: leave-one-out on the calibration scenes 14.2% against 13.7%), and the break-even error
-#: against the numpy BVH falls from 27.4% to 14.5% (26.9% to 15.8%) with no bias left
-#: (median error +5%, -6%); the power law in log2 N extrapolated worse and moved more between
-#: calibrations for the structures
+#: hit_above_16k) (``COUNT_TERMS``).  With the calibration tracing large batches, a sum
+#: follows the held-out meshes' grid time per ray more closely than a power law in
+#: (1 + cells) does (leave-one-out on the calibration scenes is about even) and its
+#: break-even against the numpy BVH has a smaller error and no bias left; a power law in
+#: log2 N extrapolated worse and moved more between calibrations for the structures
 COUNT_FORMS = {"grid": "linear", "bvh": "linear", "embree": "exp"}
 
 
@@ -815,10 +803,11 @@ def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=No
     return out
 
 
-# -- a prior bound on the break-even, before any sample (issue 14) -----------------------------
+# -- a prior bound on the break-even, before any sample ------------------------------------------
 
 #: the floor's safety factor: a bound from extremes of ~20 scenes' timings, halved because
-#: timings on a shared machine move by 20-40% between runs (and the scene is not among them)
+#: timings on a shared machine move between runs by more than those extremes allow for (and
+#: the scene is not among them)
 FLOOR_MARGIN = 0.5
 
 

@@ -25,15 +25,15 @@ def costs(rays, grid_per_ray: float, candidates: dict, answered: int = 0) -> tup
     """(names, costs): the grid first, then the candidates by name; ``costs[i, j]`` is the
     predicted time of names[i] for rays[j], the grid's build excluded (it is sunk).
 
-    candidates: {kind: (build time, time per ray)}; answered: rays of the workload the
+    candidates: {kind: ``cost.Cost``} (its point figures); answered: rays of the workload the
     grid's samples have answered already."""
     r = np.atleast_1d(np.asarray(rays, np.float64))
     left = np.maximum(r - max(0, int(answered)), 0.0)
     names = ["grid"] + sorted(candidates)
     rows = [left * float(grid_per_ray)]
     for k in names[1:]:
-        b, t = candidates[k]
-        rows.append(float(b) + (left if k in REUSES_SAMPLES else r) * float(t))
+        c = candidates[k]
+        rows.append(float(c.build_time) + (left if k in REUSES_SAMPLES else r) * float(c.per_ray))
     return names, np.stack(rows)
 
 

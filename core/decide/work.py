@@ -1,6 +1,6 @@
 """What a grid sample tells about a scene besides its time: per-ray work counts.
 
-Timings on a shared machine move by 20-40% between runs, and a K-ray sample's time per
+Timings on a shared machine move between runs, and a K-ray sample's time per
 ray depends on K (the lockstep traversal's fixed cost per step is spread over few rays).
 Counts do neither: for the same rays through the same grid they are the same numbers.
 From the sample's hits and the grid's public geometry (``lo``, ``cell_size``, ``res``,
@@ -13,7 +13,7 @@ From the sample's hits and the grid's public geometry (``lo``, ``cell_size``, ``
   count of the cells at ``POINTS`` evenly spaced points of that segment (on at most
   ``REFS_RAYS`` of the rays, evenly spread); counted only when asked (calibration counts
   it for the models that may weigh it; a plan only when its calibration's models do,
-  since it is a fifth of the estimate's cost);
+  since it is a sizeable part of the estimate's cost);
 - hit: whether it hit; length: its segment in the grid over the grid's diagonal;
 - steps, candidates, tests: what the grid's traversal really did for these rays, counted
   by the grid as it traced them (``UniformGrid.traversal_work``): lockstep steps (a jump
@@ -22,7 +22,7 @@ From the sample's hits and the grid's public geometry (``lo``, ``cell_size``, ``
   prefilter.  Absent (None) where the rays were not traced by this grid with counting.
 
 A cost model turns the means of these into times with constants fitted on the
-calibration scenes (``cost.CountModel``), so a fixed calibration gives a fixed estimate.
+calibration scenes (``cost.CountFit``), so a fixed calibration gives a fixed estimate.
 """
 
 from __future__ import annotations
@@ -33,23 +33,21 @@ import numpy as np
 
 #: the default number of sample rays a plan traces through the grid (``core.plan``).  The
 #: estimate reads the sample's work counts, not its time: a mean over K rays whose spread
-#: between seeds the break-even multiplies by t_grid / (t_grid - t_bvh), 4-8 on the small
-#: real meshes.  Five plans of one scene must agree within max / min 1.2 (issue 14): with
-#: independent uniform rays at 8,192, the break-even's standard deviation between seeds was
-#: up to 8.0% (cow), and report S's five runs reached 1.22 (suzanne); with quasi-random rays
-#: (``rays.quasi_uniform_rays``) up to 7.1% at 8,192 and 3.5% at 16,384 (16 seeds, the 9
-#: real meshes up to 70k triangles; 3.8% with 24 seeds on 12 up to 278k; BENCHMARKS.md,
-#: "Quasi-random sample rays").  Report T's five runs: max / min at most 1.11 on 18
-#: meshes (S, independent rays at 8,192: 1.22).  The estimate's cost at 1e6 rays grows
-#: with K: a median 4.48% in T (S: 2.36% at 8,192), under the issue's 5%.
+#: between seeds the break-even multiplies by t_grid / (t_grid - t_bvh), large on the small
+#: real meshes.  Five plans of one scene must agree within max / min 1.2: independent
+#: uniform rays at 8,192 do not always; quasi-random rays (``rays.quasi_uniform_rays``) at
+#: 16,384 have a much smaller spread between seeds than at 8,192 and keep five plans within
+#: it.  The estimate's cost grows with K, and at 16,384 stays under the 5% of a 1e6-ray
+#: workload the decision allows it (BENCHMARKS.md, "Calibration and plan repeatability" and
+#: "The decision report").
 DEFAULT_SAMPLES = 16384
 
 #: points per ray at which the reference count of the cells along the segment is read
 POINTS = 16
 #: rays whose references are counted (an even spread of the sample): the cells are counted
-#: on every ray, the references, 16 gathers a ray, on at most this many.  With 4,096 of
-#: the 16,384 sample rays, five plans of cow, spot, teapot and rocker-arm gave break-evens
-#: spread by max / min 1.57, 3.80, 2.68, 1.33; with all of them 1.17, 1.60, 1.25, 1.15
+#: on every ray, the references, 16 gathers a ray, on at most this many.  Counting them on
+#: a quarter of the default sample spread five plans' break-evens (of models weighing
+#: references) far wider than counting them on all of it, so this is the whole default sample
 REFS_RAYS = 1 << 14
 
 

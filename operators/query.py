@@ -1,0 +1,391 @@
+"""The script API's queries (``api.cast``, ``api.occluded``, ``api.cast_all``): checked
+arguments, the session of the depsgraph's scene, the chunked trace, and the per-hit fields
+assembled from the evaluated data.  ``api`` re-exports them; the sensor scans
+(``operators.scan``) trace through them too, so nothing in ``operators`` imports ``api``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import core
+from ..core.accel import LOCKSTEP_CHUNK
+
+__all__ = ["CastResult", "AllHits", "cast", "occluded", "cast_all", "STRUCTURES"]
+
+STRUCTURES = ("auto", "grid", "bvh", "embree")
+#: rays per chunk: bounds the working memory of a cast (about 0.3 KiB a ray in flight).  One
+#: chunk of the numpy structures (``core.accel.LOCKSTEP_CHUNK``): each chunk ends in steps over
+#: the rays still in flight, so a smaller chunk costs more per ray, and calibration measures
+#: the same batch (``core.decide.measurements.RAYS_PER_SCENE``)
+CHUNK = LOCKSTEP_CHUNK
+
+
+@dataclass
+class CastResult:
+    """The nearest hit of every ray; per ray (M,) unless said otherwise.
+
+    t: float32 distance in units of the direction (inf on a miss)
+    hit: bool
+    points: (M, 3) float64 world hit points (NaN on a miss)
+    normals: (M, 3) float32 world-space unit geometric normal of the hit triangle, turned
+        by the inverse transpose of its instance's matrix (NaN on a miss).  The same as
+        ``scene.ray_cast``'s except under non-uniform scale, where Blender's are wrong: it
+        turns normals by the matrix itself
+    smooth_normals: with ``smooth=True``, (M, 3) float32 normals interpolated from the
+        evaluated mesh's corner normals (NaN on a miss); else None
+    uv: with ``uv=True``, (M, 2) float32 coordinates in the active UV map (NaN on a miss
+        or without a UV map); else None
+    objects: object array of the hit-able original ``bpy.types.Object``s (an instanced
+        object for collection/vertex/particle instances, the instancer for geometry-nodes
+        instances, as ``scene.ray_cast`` reports them); object_names: their names
+    object_index: int32 index into ``objects`` (-1 on a miss: mask with ``hit`` first)
+    instance_index: int32 index into ``instance_matrices`` (-1 on a miss)
+    instance_matrices: (I, 4, 4) float64 world matrix of every instance (``ray_cast``'s matrix)
+    polygon_index: int32 polygon of the evaluated mesh (-1 on a miss)
+    triangle: int32 index into the extracted triangles (-1 on a miss)
+    u, v: float32 barycentrics: point = (1-u-v) v0 + u v1 + v v2 (0 on a miss)
+    structure: 'grid', 'bvh' or 'embree', the structure that traced (the last chunk's)
+    plan: the session's ``core.Plan`` (break-even, timings, notes), None if never planned
+    """
+
+    t: np.ndarray
+    hit: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    objects: np.ndarray
+    object_names: np.ndarray
+    object_index: np.ndarray
+    instance_index: np.ndarray
+    instance_matrices: np.ndarray
+    polygon_index: np.ndarray
+    triangle: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    structure: str
+    smooth_normals: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    plan: object = field(repr=False, default=None)
+
+    def __len__(self):
+        return len(self.t)
+
+    def as_dict(self) -> dict:
+        keys = ("t", "hit", "points", "normals", "object_names", "object_index", "instance_index", "polygon_index",
+                "triangle", "u", "v", "structure")
+        return {k: getattr(self, k) for k in keys}
+
+
+@dataclass
+class AllHits:
+    """Every hit of every ray, flat, sorted by ray then t (``cast_all``).
+
+    ray: int64 ray index; t: float32; triangle, object_index, instance_index,
+    polygon_index: int32; points: (H, 3) float64; normals: (H, 3) float32;
+    objects / object_names / instance_matrices as in ``CastResult``; count: (M,) hits per ray.
+    """
+
+    ray: np.ndarray
+    t: np.ndarray
+    triangle: np.ndarray
+    object_index: np.ndarray
+    instance_index: np.ndarray
+    polygon_index: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    count: np.ndarray
+    objects: np.ndarray
+    object_names: np.ndarray
+    instance_matrices: np.ndarray
+    structure: str
+
+    def __len__(self):
+        return len(self.t)
+
+
+# -- input ---------------------------------------------------------------------------------
+
+def _vectors(x, name) -> np.ndarray:
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be an array of 3-vectors: {e}") from None
+    if a.dtype == object:
+        try:
+            a = np.asarray(x, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(f"{name} must hold real numbers, got {type(x).__name__} of objects") from None
+    if np.issubdtype(a.dtype, np.complexfloating):
+        raise TypeError(f"{name} must hold real numbers, got complex dtype {a.dtype}")
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise TypeError(f"{name} must hold real numbers, got dtype {a.dtype}")
+    if a.ndim == 1 and a.shape == (3,):
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (M, 3) or (3,), got {a.shape}")
+    return a
+
+
+def _check_finite(a, name, zero=False):
+    """Checked as the rays will be traced: rounded to float32, chunk by chunk (no copy of
+    the whole input)."""
+    for s in range(0, len(a), CHUNK):
+        c = a[s:s + CHUNK]
+        if c.dtype != np.float32:
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow to inf is reported below
+                c = c.astype(np.float32)
+        if not np.isfinite(c).all():
+            w = np.flatnonzero(~np.isfinite(c).all(axis=1)) + s
+            raise ValueError(f"{name}: rays with NaN or infinite values (or overflowing float32), first at ray {w[:5].tolist()}")
+        if zero and not c.any(axis=1).all():
+            w = np.flatnonzero(~c.any(axis=1)) + s
+            raise ValueError(f"{name}: rays with a zero-length direction, first at ray {w[:5].tolist()}")
+
+
+def _bound(x, m, name):
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a number or an (M,) array, got {type(x).__name__}") from None
+    if np.issubdtype(a.dtype, np.complexfloating) or not (np.issubdtype(a.dtype, np.floating)
+                                                          or np.issubdtype(a.dtype, np.integer)):
+        raise TypeError(f"{name} must be real, got dtype {a.dtype}")
+    a = a.astype(np.float64)
+    if a.ndim not in (0, 1) or (a.ndim == 1 and a.shape != (m,)):
+        raise ValueError(f"{name} must be a scalar or shape ({m},), got {a.shape}")
+    if np.isnan(a).any():
+        raise ValueError(f"{name} contains NaN")
+    return a
+
+
+def _rays(origins, directions, tmin, tmax):
+    """Validated (origins, directions, tmin, tmax, M); one origin or one direction is
+    broadcast against many (as a read-only view: no copy)."""
+    o = _vectors(origins, "origins")
+    d = _vectors(directions, "directions")
+    if len(o) != len(d):
+        if len(o) == 1:
+            o = np.broadcast_to(o, d.shape)
+        elif len(d) == 1:
+            d = np.broadcast_to(d, o.shape)
+        else:
+            raise ValueError(f"origins {o.shape} and directions {d.shape}: give as many of each, or one of either")
+    m = len(o)
+    _check_finite(o[:1] if o.strides[0] == 0 else o, "origins")
+    _check_finite(d[:1] if d.strides[0] == 0 else d, "directions", zero=True)
+    lo, hi = _bound(tmin, m, "tmin"), _bound(tmax, m, "tmax")
+    if (lo > hi).any():
+        w = np.flatnonzero(np.broadcast_to(lo > hi, (m,)))
+        raise ValueError(f"tmin > tmax on {w.size} rays, first at ray {w[:5].tolist()}")
+    return o, d, lo, hi, m
+
+
+def _positive_int(x, name, allow_none=True):
+    if x is None and allow_none:
+        return None
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer, float, np.floating)):
+        raise TypeError(f"{name} must be a positive whole number, got {type(x).__name__}")
+    if not np.isfinite(x) or x <= 0 or int(x) != x:
+        raise ValueError(f"{name} must be a positive whole number, got {x!r}")
+    return int(x)
+
+
+class _Call:
+    """What every query shares: checked arguments, the session, the decision inputs."""
+
+    def __init__(self, origins, directions, tmin, tmax, *, depsgraph, expected_rays, selected_only, samples,
+                 structure, attributes=()):
+        import bpy
+
+        from . import session
+        from .analyze import candidate_kinds
+        from .calibrate import load_calibration
+
+        self.o, self.d, self.tmin, self.tmax, self.m = _rays(origins, directions, tmin, tmax)
+        if structure not in STRUCTURES:
+            raise ValueError(f"structure must be one of {', '.join(STRUCTURES)}, got {structure!r}")
+        if structure == "embree" and not core.embree_available():
+            raise ValueError("structure='embree' needs embreex, which cannot be imported here")
+        self.structure = structure
+        samples = _positive_int(samples, "samples")
+        if expected_rays is not None:
+            try:
+                budget = float(expected_rays)
+            except (TypeError, ValueError):
+                raise TypeError(f"expected_rays must be a number, got {type(expected_rays).__name__}") from None
+            if not (budget > 0 and np.isfinite(budget)):
+                raise ValueError(f"expected_rays must be positive and finite, got {expected_rays!r}")
+        else:
+            budget = float(max(self.m, 1))
+        self.budget = budget
+        if depsgraph is None:
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+        else:
+            session.check_depsgraph(depsgraph)
+            depsgraph.update()
+        props = depsgraph.scene.hybrid_raycast
+        self.session = session.get(depsgraph, props, selected_only=bool(selected_only), attributes=attributes)
+        s = self.session
+        self.samples = samples or props.sample_rays
+        self.grid_config = {"density": float(props.grid_density)}
+        if s.chosen is None and structure == "auto":
+            self.kinds, _ = candidate_kinds(props)
+            self.calibration = load_calibration()[0]
+        else:
+            self.kinds, self.calibration = s.kinds, s.calibration
+
+    def chunks(self, progress):
+        """(start, stop) of each chunk, with progress after each; the window manager's
+        progress bar when there is a GUI."""
+        import bpy
+
+        wm = None
+        if self.m > CHUNK and not bpy.app.background:
+            wm = getattr(bpy.context, "window_manager", None)
+        if wm is not None:
+            wm.progress_begin(0, self.m)
+        try:
+            for a in range(0, self.m, CHUNK):
+                b = min(self.m, a + CHUNK)
+                yield a, b
+                if progress is not None:
+                    progress(b, self.m)
+                if wm is not None:
+                    wm.progress_update(b)
+        finally:
+            if wm is not None:
+                wm.progress_end()
+
+    def rays(self, a, b):
+        def bound(x):
+            return x if x.ndim == 0 else x[a:b]
+
+        o, d = self.o[a:b], self.d[a:b]
+        # a chunk of the caller's arrays, or of a broadcast row: float32 copies of the chunk only
+        return (np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
+                bound(self.tmin), bound(self.tmax))
+
+    def query(self, rays, any_hit=False):
+        return self.session.query(*rays, any_hit=any_hit, structure=self.structure, budget=self.budget,
+                                  kinds=self.kinds, calibration=self.calibration, samples=self.samples,
+                                  grid_config=self.grid_config)
+
+
+def _interpolate(corners, tri, u, v):
+    """Barycentric interpolation of per-corner data (T, 3, k) at hits."""
+    c = corners[tri].astype(np.float64)
+    w0 = (1.0 - u - v).astype(np.float64)
+    return w0[:, None] * c[:, 0] + u[:, None].astype(np.float64) * c[:, 1] + v[:, None].astype(np.float64) * c[:, 2]
+
+
+# -- the queries -----------------------------------------------------------------------------
+
+def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
+         selected_only: bool = False, samples: int | None = None, structure: str = "auto",
+         smooth: bool = False, uv: bool = False, progress=None) -> CastResult:
+    """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
+
+    origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
+        (or one direction) is used for every ray of the other.
+    expected_rays: the ray budget the first cast of a session plans for (default M).
+    depsgraph: an evaluated ``bpy.types.Depsgraph`` (default the context's), e.g.
+        ``view_layer.depsgraph`` for another view layer.
+    tmin, tmax: scalars or (M,) arrays; hits count for tmin < t <= tmax.
+    selected_only: only the selected objects.  samples: sample rays the plan times
+        (default the scene's setting).  structure: 'auto', 'grid', 'bvh' or 'embree'.
+    smooth, uv: also return interpolated corner normals / active-UV-map coordinates.
+    progress: called as progress(rays_done, rays_total) after each chunk.
+    Raises TypeError/ValueError naming the argument for bad input, and the operators'
+    NoGeometry / InvalidGeometry (``operators.jobs``) for a scene without usable triangles.
+    """
+    attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ())
+    call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
+                 selected_only=selected_only, samples=samples, structure=structure, attributes=attributes)
+    s, m = call.session, call.m
+    objects, names = s.tables()
+    inst = s.mesh.instances
+    t = np.empty(m, np.float32)
+    tri = np.empty(m, np.int32)
+    u = np.empty(m, np.float32)
+    v = np.empty(m, np.float32)
+    points = np.empty((m, 3), np.float64)
+    normals = np.empty((m, 3), np.float32)
+    obj = np.empty(m, np.int32)
+    ins = np.empty(m, np.int32)
+    poly = np.empty(m, np.int32)
+    smooth_n = np.empty((m, 3), np.float32) if smooth else None
+    uvs = np.empty((m, 2), np.float32) if uv else None
+    kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
+    tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
+    for a, b in call.chunks(progress):
+        rays = call.rays(a, b)
+        h, kind = call.query(rays)
+        k = h.triangle  # -1 on a miss picks the tables' miss row
+        t[a:b], tri[a:b], u[a:b], v[a:b] = h.t, k, h.u, h.v
+        np.take(tri_obj, k, out=obj[a:b])
+        np.take(tri_ins, k, out=ins[a:b])
+        np.take(tri_poly, k, out=poly[a:b])
+        np.take(tri_normals, k, axis=0, out=normals[a:b])
+        tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
+        np.multiply(tt[:, None], rays[1], out=points[a:b])
+        points[a:b] += rays[0]
+        if smooth or uv:
+            hit = k >= 0
+            kh, uh, vh = k[hit], h.u[hit], h.v[hit]
+        if smooth:
+            sn = _interpolate(inst.corner_normals, kh, uh, vh)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                sn /= np.linalg.norm(sn, axis=1, keepdims=True)
+            smooth_n[a:b][~hit] = np.nan
+            smooth_n[a:b][hit] = sn
+        if uv:
+            uvs[a:b][~hit] = np.nan
+            uvs[a:b][hit] = _interpolate(inst.corner_uvs, kh, uh, vh)
+    return CastResult(t=t, hit=tri >= 0, points=points, normals=normals, objects=objects, object_names=names,
+                      object_index=obj, instance_index=ins, instance_matrices=inst.matrices, polygon_index=poly,
+                      triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs, plan=s.plan)
+
+
+def occluded(origins, directions, *, tmin=0.0, tmax=np.inf, depsgraph=None, expected_rays=None,
+             selected_only: bool = False, samples: int | None = None, structure: str = "auto",
+             progress=None) -> np.ndarray:
+    """(M,) bool: True where any triangle is hit with tmin < t <= tmax (line of sight,
+    shadows: stops at the first hit found).  Arguments as ``cast``."""
+    call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
+                 selected_only=selected_only, samples=samples, structure=structure)
+    out = np.empty(call.m, bool)
+    for a, b in call.chunks(progress):
+        out[a:b] = call.query(call.rays(a, b), any_hit=True)[0]
+    return out
+
+
+def cast_all(origins, directions, *, max_hits: int = 16, tmin=0.0, tmax=np.inf, depsgraph=None,
+             selected_only: bool = False, structure: str = "auto", progress=None) -> AllHits:
+    """Every hit along each ray, nearest first, at most ``max_hits`` per ray, as flat
+    arrays sorted by ray then t (``AllHits``).  Hits at one point (a shared edge or vertex)
+    count once (``core.all_hits``).  Traces with the session's structure ('auto': the one
+    its casts use, or the grid before any; planning needs a nearest-hit cast)."""
+    max_hits = _positive_int(max_hits, "max_hits", allow_none=False)
+    call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=None,
+                 selected_only=selected_only, samples=None, structure=structure)
+    s = call.session
+    kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
+    acc = s.structure(kind, **(call.grid_config if kind == "grid" else {}))
+    parts = []
+    for a, b in call.chunks(progress):
+        o, d, lo, hi = call.rays(a, b)
+        ray, t, tri, u, v = core.all_hits(acc, o, d, lo, hi, max_hits=max_hits)
+        parts.append((ray + a, t, tri, o[ray], d[ray]))
+    if parts:
+        ray, t, tri, o, d = (np.concatenate(c) for c in zip(*parts))
+    else:
+        ray, t, tri, o, d = (np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32),
+                             np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+    objects, names = s.tables()
+    inst, mesh = s.mesh.instances, s.mesh
+    points = o.astype(np.float64) + t.astype(np.float64)[:, None] * d.astype(np.float64)
+    return AllHits(ray=ray, t=t, triangle=tri, object_index=inst.instance_object[mesh.instance_index[tri]],
+                   instance_index=mesh.instance_index[tri], polygon_index=mesh.polygon_index[tri], points=points,
+                   normals=s.triangle_normals[tri], count=np.bincount(ray, minlength=call.m).astype(np.int32),
+                   objects=objects, object_names=names, instance_matrices=inst.matrices, structure=kind)
