@@ -18,7 +18,7 @@ ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
 # This machine's package (the real-Blender suite installs it).
 ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan report docs clean
+.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-proximity report docs clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -128,6 +128,11 @@ bench-distributed: $(VENV)/.stamp
 ## Sensor scans: 64 x 2,048 rays per frame over 100 frames of an animated scene vs a scene.ray_cast loop (timing lock held).
 bench-scan: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/bench_scan.py
+
+## Closest-point queries: the numpy tree against Blender's BVHTree.find_nearest loop on flat grids of
+## 20k and 1M triangles, and the winding number's tree against its exact sum (timing lock held).
+bench-proximity: $(VENV)/.stamp
+	flock /tmp/hrc-bench.lock $(PY) scripts/bench_proximity.py $(BENCH_ARGS)
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes,
 ## the calibration and the truths in the same passes (about 42 minutes on the 2-core VM, 13 with

@@ -6,9 +6,13 @@
     r.objects[r.object_index[r.hit]]                        # the bpy.types.Object hit
     api.occluded(origins, directions, tmax=1.0)             # (M,) bool: anything in the way
     api.cast_all(origins, directions, max_hits=8)           # every hit, flat, by ray then t
+    c = api.closest(points)                                 # nearest surface point: c.distance, c.points, ...
+    api.inside(points), api.signed_distance(points)         # winding number > 0.5; negative inside
+    api.count_hits(origins, directions)                     # (M,) hits along each ray
 
 Every call goes through the session of the depsgraph's scene and view layer
-(``operators/session.py``; the queries themselves are in ``operators/query.py``): the triangles, the structures and the plan are reused while
+(``operators/session.py``; the queries themselves are in ``operators/query.py``): the
+triangles, the structures and the plan are reused while
 the scene's fingerprint is unchanged, and extracted again otherwise, so a cast always sees
 the scene as it is now.  The first cast plans (``core.plan``: the grid, K sample rays from
 the cast, the paper's rule for ``expected_rays``); later casts reuse the chosen structure
@@ -26,10 +30,12 @@ import importlib
 #: where each name lives: the queries in ``operators/query.py``, the scans in
 #: ``operators/scan.py``.  Both need bpy, so they are imported on first use (PEP 562) and a
 #: plain ``import hybrid_raycast`` (the core without Blender) never imports bpy
-_HOMES = {**{n: "query" for n in ("CastResult", "AllHits", "cast", "occluded", "cast_all", "STRUCTURES", "CHUNK")},
+_HOMES = {**{n: "query" for n in ("CastResult", "AllHits", "ClosestResult", "cast", "occluded", "cast_all", "closest",
+                                   "inside", "signed_distance", "count_hits", "STRUCTURES", "CHUNK")},
           **{n: "scan" for n in ("ScanResult", "scan")}}
 
-__all__ = ["CastResult", "AllHits", "ScanResult", "cast", "occluded", "cast_all", "scan", "STRUCTURES", "CHUNK"]
+__all__ = ["CastResult", "AllHits", "ClosestResult", "ScanResult", "cast", "occluded", "cast_all", "closest", "inside",
+           "signed_distance", "count_hits", "scan", "STRUCTURES", "CHUNK"]
 
 
 def __getattr__(name):

@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .hits import Hits
+from . import proximity
 from .intersect import Rays, prepare_rays, shear_rays
 from .mesh import TriangleMesh
 
@@ -177,6 +178,59 @@ class Accel:
             return [fn(x) for x in items]
         with ThreadPoolExecutor(self.threads) as pool:
             return list(pool.map(fn, items))
+
+    # -- point queries (core/proximity.py) ------------------------------------------------
+    def _point_parts(self, m: int) -> list[slice]:
+        """The points cut into one part per thread, each of at least ``MIN_SPLIT``."""
+        return even_parts(m, max(1, min(self.threads, m // MIN_SPLIT)))
+
+    def _point_index(self):
+        """The ``proximity.TreeIndex`` the point queries search: a BVH's own arrays; the
+        structures without a tree build a BVH over the same mesh on first use."""
+        raise NotImplementedError
+
+    def closest(self, points, max_distance=np.inf) -> proximity.Nearest:
+        """The closest point on the surface to each of ``points`` (M, 3): ``distance``,
+        ``triangle``, ``points``, ``u``, ``v`` (``proximity.Nearest``); a point with nothing
+        within ``max_distance`` (inclusive) gets distance inf and triangle -1.  Exact in
+        float64; a tie goes to the lowest triangle index."""
+        index = self._point_index()
+        p = proximity.check_points(points)
+        parts = self._point_parts(len(p))
+        if len(parts) == 1:
+            return proximity.closest_tree(index, p, max_distance)
+        got = self._in_pool(lambda sl: proximity.closest_tree(index, p[sl], max_distance), parts)
+        return proximity.Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in
+                                   ("distance", "triangle", "points", "u", "v")))
+
+    def winding_number(self, points, accuracy: float = proximity.ACCURACY) -> np.ndarray:
+        """(M,) float64 generalized winding number of each point (1 inside a closed mesh, 0
+        outside, fractional near holes), by the tree's far-field sum (``accuracy``: Barill
+        et al.'s beta; ``proximity.winding_number_tree``)."""
+        index = self._point_index()
+        p = proximity.check_points(points)
+        parts = self._point_parts(len(p))
+        if len(parts) == 1:
+            return proximity.winding_number_tree(index, p, accuracy)
+        index.dipoles()  # made once, before the threads share it
+        return np.concatenate(self._in_pool(lambda sl: proximity.winding_number_tree(index, p[sl], accuracy), parts))
+
+    def inside(self, points, accuracy: float = proximity.ACCURACY) -> np.ndarray:
+        """(M,) bool: winding number above 0.5, which holds on open meshes, meshes with
+        holes, self-intersecting meshes and overlapping shells."""
+        return self.winding_number(points, accuracy) > 0.5
+
+    def signed_distance(self, points, accuracy: float = proximity.ACCURACY) -> np.ndarray:
+        """(M,) float64 distance to the surface, negative inside (``inside``); inf for every
+        point of an empty mesh."""
+        d = self.closest(points).distance
+        return np.where(self.inside(points, accuracy), -d, d)
+
+    def count_hits(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """(M,) int32 distinct hits along each ray with tmin < t <= tmax (hits of one ray at
+        the same point, a shared edge, count once; as ``core.all_hits`` counts them), without
+        keeping them."""
+        return proximity.count_hits_tree(self._point_index(), origins, directions, tmin, tmax)
 
     def stats(self) -> dict:
         return {"kind": self.kind, "triangles": self.mesh.triangle_count, "build_time_s": self.build_time}

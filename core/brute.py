@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import proximity
 from .accel import Accel
 from .intersect import NearestHits, Rays, intersect
 
@@ -36,6 +37,17 @@ class BruteForce(Accel):
         for r, tri in self._pairs(len(rays)):
             best.update(r, tri, intersect(rays, r, tri, tv, t_hi=best.t(r)))
         return best.finish(rays, tv)
+
+    # the point queries by brute force: the reference the trees are tested against
+    def closest(self, points, max_distance=np.inf):
+        return proximity.closest_brute(self.mesh, points, max_distance)
+
+    def winding_number(self, points, accuracy=None):
+        """The exact sum over every triangle (``accuracy`` is the trees'; ignored)."""
+        return proximity.winding_number_brute(self.mesh, points)
+
+    def count_hits(self, origins, directions, tmin=0.0, tmax=np.inf):
+        return proximity.count_hits_brute(self.mesh, origins, directions, tmin, tmax)
 
     def _occluded_rays(self, rays: Rays):
         tv = self.mesh.tri_vertices

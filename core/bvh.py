@@ -39,6 +39,7 @@ from __future__ import annotations
 import numpy as np
 
 from .accel import LOCKSTEP_CHUNK, Accel
+from .proximity import TreeIndex
 from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F32 = np.float32
@@ -581,6 +582,9 @@ class BVH(Accel):
         self.depth = int(wdepth)
         self._stack_depth = 3 * self.depth + 2
 
+    def _point_index(self):
+        return point_index_of(self)
+
     # -- traversal -------------------------------------------------------------------------
     def trace(self, *args, **kw):
         self._counters = []
@@ -855,3 +859,17 @@ class BVH(Accel):
                 lockstep_steps=int(c[:, 4].max()),
             )
         return s
+
+
+def point_index_of(accel: Accel) -> TreeIndex:
+    """The point queries' tree over ``accel``'s mesh (``proximity.TreeIndex``): a BVH's own
+    arrays; for another structure a BVH built on first use, kept on the structure so that
+    later queries reuse it."""
+    index = getattr(accel, "_tree_index", None)
+    if index is None:
+        tree = accel if isinstance(accel, BVH) else BVH(accel.mesh, threads=accel.threads)
+        index = TreeIndex(accel.mesh, tree.node_boxes, tree.node_children, tree.leaf_start, tree.leaf_count,
+                          tree.leaf_triangles)
+        accel._tree_index = index
+    return index
+

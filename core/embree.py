@@ -144,6 +144,11 @@ class EmbreeAccel(Accel):
         self.direct_fill = bool(direct_fill)
         super().__init__(mesh, threads=threads, **kw)
 
+    def _point_index(self):
+        from .bvh import point_index_of  # a BVH for the point queries, built on first use
+
+        return point_index_of(self)
+
     def _build(self):
         rtcore, rtcore_scene, mesh_construction = _import_embreex()
         valid = self.mesh.valid

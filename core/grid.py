@@ -204,6 +204,11 @@ class UniformGrid(Accel):
     #: triangles per build block: keeps the per-triangle temporaries in cache
     build_block = 1 << 16
 
+    def _point_index(self):
+        from .bvh import point_index_of  # a BVH for the point queries, built on first use
+
+        return point_index_of(self)
+
     def _build(self):
         mesh = self.mesh
         ids = np.flatnonzero(mesh.valid).astype(np.int32)

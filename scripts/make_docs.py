@@ -61,6 +61,10 @@ def main(argv=None) -> int:
     import pdoc.render
 
     importable_by_workers()  # `import hybrid_raycast` finds this checkout
+    # api's names are imported on first use (PEP 562), which pdoc does not do: resolve them
+    api = importlib.import_module("hybrid_raycast.api")
+    for name in api.__all__:
+        setattr(api, name, getattr(api, name))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         warnings.filterwarnings("ignore", category=DeprecationWarning, module="bpy")

@@ -1,0 +1,556 @@
+"""Point queries on the structures' triangles: the closest point, the generalized winding
+number (inside / outside on any mesh) and the number of hits along a ray.
+
+Every function takes the triangles as a ``TriangleMesh`` and, for the hierarchical versions,
+a ``TreeIndex``: the arrays of a 4-wide BVH (``bvh.BVH``'s layout), so this module imports
+no structure.  ``accel.Accel`` exposes them as ``closest``, ``winding_number``, ``inside``,
+``signed_distance`` and ``count_hits`` on every structure.
+
+Conventions (those of the ray queries, ../shared/DESIGN.md):
+- only valid triangles count (``TriangleMesh.valid``: a degenerate one is never hit, and never
+  closest);
+- the closest point: the least Euclidean distance, computed in float64 from the float32
+  vertices; an exact tie goes to the lowest triangle index; ``max_distance`` is inclusive,
+  and a point with nothing within it is a documented miss (distance inf, triangle -1);
+- the winding number (Jacobson, Kavan and Sorkine-Hornung 2013): the sum of the triangles'
+  signed solid angles over 4 pi, 1 inside a closed mesh whose triangles wind counter-clockwise
+  seen from outside, 0 outside, and in between near holes; ``inside`` is w > 0.5, so it holds
+  on open meshes, meshes with holes, self-intersections and overlapping shells.  The tree
+  version is Barill et al. (2018): a subtree seen from farther than ``accuracy`` times its
+  radius counts as its dipole (the area-weighted normal at its area centroid), nearer ones
+  are opened, and leaves near the point are summed exactly;
+- ``count_hits``: the distinct hits with tmin < t <= tmax, where hits of the same ray within
+  ``multihit.SAME_POINT_ULPS`` float32 ulps of t are one point (a ray through a shared edge
+  counts once), as ``core.all_hits`` counts them.
+
+Bad input raises ``ValueError`` naming the argument: points that are not (M, 3) or (3,),
+NaN or infinite coordinates, a ``max_distance`` that is not positive or is NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .intersect import Rays, intersect, prepare_rays
+from .mesh import TriangleMesh
+from .multihit import SAME_POINT_ULPS
+
+F64 = np.float64
+#: the default of ``winding_number``'s ``accuracy`` (Barill et al.'s beta): a subtree farther
+#: than this many of its radii counts as its dipole.  Larger is more exact and slower; the
+#: tests check inside/outside against the exact sum wherever |w - 0.5| > 0.1
+ACCURACY = 2.5
+#: (point, node) pairs stepping together in the tree searches: bounds the working memory
+#: whatever the points' neighbourhoods look like (a point at a sphere's centre is equally far
+#: from every box)
+PAIRS = 1 << 18
+#: point-triangle pairs per block of the brute force
+BRUTE_PAIRS = 1 << 20
+#: points searched together by the trees (the greedy descent holds every one's boxes)
+POINT_CHUNK = 1 << 17
+
+
+@dataclass
+class Nearest:
+    """The closest surface point of each query point; per point (M,).
+
+    distance: float64 Euclidean distance (inf where nothing is within ``max_distance``)
+    triangle: int32 index of the closest triangle (-1 on a miss)
+    points: (M, 3) float64 the closest point on it (NaN on a miss)
+    u, v: float32 its barycentrics, point = (1-u-v) v0 + u v1 + v v2 (0 on a miss)
+    """
+
+    distance: np.ndarray
+    triangle: np.ndarray
+    points: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    def __len__(self):
+        return len(self.distance)
+
+    @property
+    def found(self) -> np.ndarray:
+        return self.triangle >= 0
+
+
+# -- arguments -------------------------------------------------------------------------------
+
+def check_points(points, name: str = "points") -> np.ndarray:
+    """(M, 3) float64 finite points from (M, 3) or (3,) array-likes; a clear ValueError else."""
+    try:
+        p = np.asarray(points, F64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numbers, shaped (M, 3) or (3,)") from None
+    if p.ndim == 1 and p.shape == (3,):
+        p = p[None, :]
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must be shaped (M, 3) or (3,), got {p.shape}")
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{name} has {int(bad.sum())} rows with NaN or infinite coordinates (first: row "
+                         f"{int(np.flatnonzero(bad)[0])})")
+    return p
+
+
+def check_max_distance(max_distance) -> float:
+    try:
+        d = float(max_distance)
+    except (TypeError, ValueError):
+        raise ValueError(f"max_distance must be a number, got {max_distance!r}") from None
+    if not d > 0:  # also NaN
+        raise ValueError(f"max_distance must be positive (inf: no limit), got {max_distance!r}")
+    return d
+
+
+# -- one point against one triangle -------------------------------------------------------------
+
+def closest_on_triangles(p, a, b, c):
+    """The closest point of each triangle (a, b, c) to p, all (P, 3) float64: (squared
+    distance (P,), u (P,), v (P,)) with the point (1-u-v) a + u b + v c.  Ericson's regions
+    (Real-Time Collision Detection, 5.1.5), vectorised; the triangles are not degenerate."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = p - b
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = p - c
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    with np.errstate(divide="ignore", invalid="ignore"):
+        in_a = (d1 <= 0) & (d2 <= 0)
+        in_b = (d3 >= 0) & (d4 <= d3)
+        in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        in_c = (d6 >= 0) & (d5 <= d6)
+        in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        in_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+        s_ab = d1 / (d1 - d3)
+        s_ac = d2 / (d2 - d6)
+        s_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        den = va + vb + vc
+        f_u, f_v = vb / den, vc / den
+    regions = [in_a, in_b, in_ab, in_c, in_ac, in_bc]
+    u = np.select(regions, [0.0, 1.0, s_ab, 0.0, 0.0, 1.0 - s_bc], f_u)
+    v = np.select(regions, [0.0, 0.0, 0.0, 1.0, s_ac, s_bc], f_v)
+    q = a + u[:, None] * ab + v[:, None] * ac
+    d = p - q
+    return np.einsum("ij,ij->i", d, d), u, v
+
+
+def _better(d2, tri, best_d2, best_tri):
+    """Where (d2, tri) improves on (best_d2, best_tri): less distance, or the same and a lower index."""
+    return (d2 < best_d2) | ((d2 == best_d2) & (tri < best_tri) & (tri >= 0))
+
+
+def _reduce_pairs(owner, tri, d2, u, v, best):
+    """Fold point-triangle pairs (owner = the point's row; a triangle at most once per owner)
+    into ``best`` (d2, tri, u, v arrays): per owner the least d2, an exact tie to the lowest
+    triangle index, and only where that improves on what ``best`` holds."""
+    if owner.size == 0:
+        return
+    bd, bt, bu, bv = best
+    low = bd.copy()
+    np.minimum.at(low, owner, d2)
+    at_low = d2 == low[owner]
+    big = np.iinfo(np.int64).max
+    first = np.where(bd == low, np.where(bt < 0, big, bt), big)  # a tie with best: its index counts too
+    np.minimum.at(first, owner[at_low], tri[at_low])
+    win = at_low & (tri == first[owner])
+    o = owner[win]
+    bd[o], bt[o], bu[o], bv[o] = d2[win], tri[win], u[win], v[win]
+
+
+def _nearest(points, best, tv64) -> Nearest:
+    d2, tri, u, v = best
+    found = tri >= 0
+    q = np.full(points.shape, np.nan)
+    if found.any():
+        t = tv64[tri[found]]
+        uu, vv = u[found][:, None], v[found][:, None]
+        q[found] = (1.0 - uu - vv) * t[:, 0] + uu * t[:, 1] + vv * t[:, 2]
+    dist = np.where(found, np.sqrt(np.where(found, d2, 0.0)), np.inf)
+    return Nearest(dist, tri.astype(np.int32), q, np.where(found, u, 0).astype(np.float32),
+                   np.where(found, v, 0).astype(np.float32))
+
+
+def _fresh_best(m, max_distance):
+    md2 = max_distance * max_distance if math.isfinite(max_distance) else np.inf
+    return [np.full(m, md2), np.full(m, -1, np.int64), np.zeros(m), np.zeros(m)]
+
+
+# -- brute force (the reference) ------------------------------------------------------------------
+
+def closest_brute(mesh: TriangleMesh, points, max_distance=np.inf) -> Nearest:
+    """Every point against every valid triangle, in blocks: the reference for the tree."""
+    p = check_points(points)
+    md = check_max_distance(max_distance)
+    tv64 = mesh.tri_vertices.astype(F64)
+    tris = np.flatnonzero(mesh.valid)
+    best = _fresh_best(len(p), md)
+    if len(p) and tris.size:
+        per = max(1, BRUTE_PAIRS // tris.size)
+        for s in range(0, len(p), per):
+            rows = np.arange(s, min(len(p), s + per))
+            owner = np.repeat(rows, tris.size)
+            tri = np.tile(tris, rows.size)
+            t = tv64[tri]
+            d2, u, v = closest_on_triangles(p[owner], t[:, 0], t[:, 1], t[:, 2])
+            _reduce_pairs(owner, tri, d2, u, v, best)
+    return _nearest(p, best, tv64)
+
+
+def solid_angles(p, a, b, c) -> np.ndarray:
+    """Signed solid angle of each triangle (a, b, c) seen from p, all (P, 3) float64 (Van
+    Oosterom and Strackee): positive when p is behind the triangle's counter-clockwise face."""
+    A, B, C = a - p, b - p, c - p
+    la, lb, lc = (np.sqrt(np.einsum("ij,ij->i", x, x)) for x in (A, B, C))
+    num = np.einsum("ij,ij->i", A, np.cross(B, C))
+    den = (la * lb * lc + np.einsum("ij,ij->i", A, B) * lc + np.einsum("ij,ij->i", A, C) * lb
+           + np.einsum("ij,ij->i", B, C) * la)
+    return 2.0 * np.arctan2(num, den)
+
+
+def winding_number_brute(mesh: TriangleMesh, points) -> np.ndarray:
+    """The exact generalized winding number of every point: the sum over all valid triangles."""
+    p = check_points(points)
+    tv64 = mesh.tri_vertices.astype(F64)
+    tris = np.flatnonzero(mesh.valid)
+    w = np.zeros(len(p))
+    if len(p) and tris.size:
+        per = max(1, BRUTE_PAIRS // tris.size)
+        for s in range(0, len(p), per):
+            rows = np.arange(s, min(len(p), s + per))
+            owner = np.repeat(rows, tris.size)
+            t = tv64[np.tile(tris, rows.size)]
+            w[rows] += np.bincount(owner - s, solid_angles(p[owner], t[:, 0], t[:, 1], t[:, 2]), minlength=rows.size)
+    return w / (4.0 * math.pi)
+
+
+def _distinct_counts(ray, t, m) -> np.ndarray:
+    """Hits per ray, those within SAME_POINT_ULPS of the ray's previous one counted once."""
+    if ray.size == 0:
+        return np.zeros(m, np.int32)
+    order = np.lexsort((t, ray))
+    ray, t = ray[order], t[order]
+    new = np.ones(ray.size, bool)
+    same_ray = ray[1:] == ray[:-1]
+    near = np.abs(t[1:] - t[:-1]) <= SAME_POINT_ULPS * np.spacing(np.abs(t[1:]))
+    new[1:] = ~(same_ray & near)
+    return np.bincount(ray[new], minlength=m).astype(np.int32)
+
+
+def count_hits_brute(mesh: TriangleMesh, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    """(M,) int32 distinct hits of every ray with every valid triangle (the reference)."""
+    rays = prepare_rays(origins, directions, tmin, tmax)
+    m = len(rays)
+    tris = np.flatnonzero(mesh.valid)
+    tv = mesh.tri_vertices
+    found_r, found_t = [], []
+    if m and tris.size:
+        per = max(1, BRUTE_PAIRS // tris.size)
+        for s in range(0, m, per):
+            r = np.repeat(np.arange(s, min(m, s + per)), tris.size)
+            tri = np.tile(tris, min(m, s + per) - s)
+            t = intersect(rays, r, tri, tv)
+            ok = np.isfinite(t)
+            found_r.append(r[ok])
+            found_t.append(t[ok])
+    if not found_r:
+        return np.zeros(m, np.int32)
+    return _distinct_counts(np.concatenate(found_r), np.concatenate(found_t), m)
+
+
+# -- the tree ------------------------------------------------------------------------------------------
+
+class TreeIndex:
+    """A 4-wide BVH's arrays (``bvh.BVH``'s layout) over a mesh, for the point queries, with
+    the per-subtree sums the winding number's far field needs, made on first use.
+
+    boxes (W, 2, 3, 4) float64: lo / hi, axis, child slot (NaN for an empty slot); children
+    (W, 4): >= 0 a wide node, < 0 the leaf ~code; leaf i holds triangles
+    ``leaf_triangles[leaf_start[i]: leaf_start[i] + leaf_count[i]]``.
+    """
+
+    def __init__(self, mesh: TriangleMesh, node_boxes, node_children, leaf_start, leaf_count, leaf_triangles):
+        self.mesh = mesh
+        w = len(node_boxes)
+        self.boxes = np.asarray(node_boxes, F64).reshape(w, 2, 3, 4)
+        self.children = np.asarray(node_children, np.int64)
+        self.leaf_start = np.asarray(leaf_start, np.int64)
+        self.leaf_count = np.asarray(leaf_count, np.int64)
+        self.leaf_triangles = np.asarray(leaf_triangles, np.int64)
+        self.tv64 = mesh.tri_vertices.astype(F64)
+        # float32 boxes about the mesh's centre (so their rounding is the extent's, not the
+        # position's), each rounded outward so it still holds everything the exact box does
+        self.centre = np.nanmean(self.boxes.reshape(w, 2, 3, 4)[:1], axis=(0, 1, 3)) if w else np.zeros(3)
+        rel = self.boxes.reshape(w, 6, 4) - np.tile(self.centre, 2)[None, :, None]
+        b32 = rel.astype(np.float32)
+        b32[:, :3] = np.where(b32[:, :3] > rel[:, :3], np.nextafter(b32[:, :3], np.float32(-np.inf)), b32[:, :3])
+        b32[:, 3:] = np.where(b32[:, 3:] < rel[:, 3:], np.nextafter(b32[:, 3:], np.float32(np.inf)), b32[:, 3:])
+        self.boxes32 = np.ascontiguousarray(b32)
+        self.slot = ~np.isnan(self.boxes[:, 0, 0, :])  # (W, 4) a child is there
+        self._dipoles = None
+
+    def __len__(self):
+        return len(self.boxes)
+
+    def leaf_pairs(self, owner, leaf):
+        """(owner repeated, triangle) for every triangle of each (owner, leaf) pair."""
+        n = self.leaf_count[leaf]
+        own = np.repeat(owner, n)
+        first = np.repeat(self.leaf_start[leaf], n)
+        offset = np.arange(own.size) - np.repeat(np.cumsum(n) - n, n)
+        return own, self.leaf_triangles[first + offset]
+
+    # -- the winding number's far field: per child slot, area, area centroid, area-weighted
+    #    normal (the dipole) and the radius of a ball around the centroid holding the subtree
+    def dipoles(self):
+        if self._dipoles is not None:
+            return self._dipoles
+        tv = self.tv64
+        lt = self.leaf_triangles
+        t = tv[lt]
+        cross = 0.5 * np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+        cen = t.mean(axis=1)
+        nl = len(self.leaf_start)
+        starts = self.leaf_start
+        l_area = np.add.reduceat(area, starts) if nl else np.zeros(0)
+        l_n = np.add.reduceat(cross, starts, axis=0) if nl else np.zeros((0, 3))
+        l_ac = np.add.reduceat(area[:, None] * cen, starts, axis=0) if nl else np.zeros((0, 3))
+        l_c = l_ac / l_area[:, None]  # a leaf holds valid triangles only: its area is positive
+        # a leaf's radius: the farthest of its triangles' vertices from its centroid
+        owner = np.repeat(np.arange(nl), self.leaf_count)
+        far = np.sqrt(((t - l_c[owner][:, None, :]) ** 2).sum(axis=2)).max(axis=1)
+        l_r = np.zeros(nl)
+        np.maximum.at(l_r, owner, far)
+        w = len(self.boxes)
+        s_area, s_n, s_c, s_r = np.zeros((w, 4)), np.zeros((w, 4, 3)), np.zeros((w, 4, 3)), np.zeros((w, 4))
+        node_area, node_n, node_c, node_r = np.zeros(w), np.zeros((w, 3)), np.zeros((w, 3)), np.zeros(w)
+        # wide nodes are numbered breadth first: children after parents, so from the last back
+        for level in reversed(self._levels()):
+            ch = self.children[level]
+            slot = self.slot[level]
+            leaf = slot & (ch < 0)
+            node = slot & (ch >= 0)
+            li = np.where(leaf, ~ch, 0)
+            ni = np.where(node, ch, 0)
+            a = np.where(leaf, l_area[li], np.where(node, node_area[ni], 0.0))
+            n = np.where(leaf[..., None], l_n[li], np.where(node[..., None], node_n[ni], 0.0))
+            c = np.where(leaf[..., None], l_c[li], np.where(node[..., None], node_c[ni], 0.0))
+            r = np.where(leaf, l_r[li], np.where(node, node_r[ni], 0.0))
+            s_area[level], s_n[level], s_c[level], s_r[level] = a, n, c, r
+            tot = a.sum(axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = np.where(tot[:, None] > 0, (a[..., None] * c).sum(axis=1) / tot[:, None],
+                                (c * slot[..., None]).sum(axis=1) / np.maximum(slot.sum(axis=1), 1)[:, None])
+            gap = np.sqrt(((c - mean[:, None, :]) ** 2).sum(axis=2)) + r
+            node_area[level], node_n[level], node_c[level] = tot, n.sum(axis=1), mean
+            node_r[level] = np.where(slot, gap, 0.0).max(axis=1)
+        self._dipoles = (s_area, s_n, s_c, s_r)
+        return self._dipoles
+
+    def _levels(self) -> list[np.ndarray]:
+        """The wide nodes by depth, the root's level first."""
+        levels, cur = [], np.zeros(1 if len(self.boxes) else 0, np.int64)
+        while cur.size:
+            levels.append(cur)
+            ch = self.children[cur]
+            cur = ch[self.slot[cur] & (ch >= 0)]
+        return levels
+
+
+#: a float32 box distance is compared with the best float64 distance widened by the point's
+#: own float32 rounding (``_rounding``) and this relative margin, so float32 arithmetic can
+#: only open a box more, never prune one the exact arithmetic would open
+OPEN_MARGIN = 1e-5
+
+
+def _box_d2(p32, boxes32):
+    """Squared distance (float32) from each p (F, 3) to each of the 4 child boxes
+    (F, 6, 4: lo x, y, z then hi x, y, z, by slot): (F, 4), NaN for an empty slot."""
+    d2 = None
+    for a in range(3):
+        q = p32[:, a:a + 1]
+        gap = np.maximum(np.maximum(boxes32[:, a] - q, q - boxes32[:, 3 + a]), np.float32(0))
+        d2 = gap * gap if d2 is None else d2 + gap * gap
+    return d2
+
+
+def _rounding(p32) -> np.ndarray:
+    """(F,) a bound on the float32 error of a point's distance to a box (both about the
+    centre): a few ulps of its largest coordinate, at least the smallest normal float32."""
+    big = np.abs(p32).max(axis=1)
+    return 4.0 * np.spacing(np.maximum(big, np.float32(1.0))).astype(F64) + np.finfo(np.float32).tiny
+
+
+def _open(d2_32, best_d2, slack):
+    """Which boxes to open: float32 distances against the float64 best widened by ``slack``."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        thr = (np.sqrt(best_d2) + slack) ** 2 * (1.0 + OPEN_MARGIN)
+        return d2_32 <= thr[:, None]
+
+
+def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
+    """The closest point of checked points ``p`` by branch and bound, vectorised over
+    (point, node) pairs: every child box nearer than the point's best distance so far is
+    opened (a tie in distance still opened, for the lowest triangle index), leaves' triangles
+    are measured exactly; a greedy descent to the nearest leaf first gives every point a
+    bound."""
+    m = len(p)
+    best = _fresh_best(m, md)
+    if m == 0 or len(index) == 0:
+        return _nearest(p, best, index.tv64)
+    tv = index.tv64
+
+    first_leaf = np.full(m, -1, np.int64)  # the greedy descent's leaf: measured once, not again
+
+    def measure(owner, leaf):
+        again = first_leaf[owner] == leaf
+        if again.any():
+            owner, leaf = owner[~again], leaf[~again]
+        own, tri = index.leaf_pairs(owner, leaf)
+        t = tv[tri]
+        d2, u, v = closest_on_triangles(p[own], t[:, 0], t[:, 1], t[:, 2])
+        _reduce_pairs(own, tri, d2, u, v, best)
+
+    p32 = (p - index.centre).astype(np.float32)
+    slack = _rounding(p32)
+    # a bound for every point: down the nearest child box to a leaf
+    node = np.zeros(m, np.int64)
+    rows = np.arange(m)
+    while rows.size:
+        d2 = _box_d2(p32[rows], index.boxes32[node])
+        j = np.argmin(np.where(np.isnan(d2), np.float32(np.inf), d2), axis=1)
+        child = index.children[node, j]
+        leaf = child < 0
+        measure(rows[leaf], ~child[leaf])
+        first_leaf[rows[leaf]] = ~child[leaf]
+        rows, node = rows[~leaf], child[~leaf]
+    # branch and bound, depth first over bounded pieces of (point, node) pairs
+    pieces = [(np.arange(m), np.zeros(m, np.int64))]
+    while pieces:
+        rows, node = pieces.pop()
+        if rows.size > PAIRS:
+            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
+            continue
+        r, j = np.nonzero(_open(_box_d2(p32[rows], index.boxes32[node]), best[0][rows], slack[rows]))
+        own, child = rows[r], index.children[node[r], j]
+        leaf = child < 0
+        measure(own[leaf], ~child[leaf])
+        if (~leaf).any():
+            pieces.append((own[~leaf], child[~leaf]))
+    return _nearest(p, best, tv)
+
+
+def closest_tree(index: TreeIndex, points, max_distance=np.inf) -> Nearest:
+    """The closest point by branch and bound over the tree (``_closest_chunk``), in chunks
+    of ``POINT_CHUNK`` points."""
+    p = check_points(points)
+    md = check_max_distance(max_distance)
+    if len(p) <= POINT_CHUNK:
+        return _closest_chunk(index, p, md)
+    got = [_closest_chunk(index, p[a:a + POINT_CHUNK], md) for a in range(0, len(p), POINT_CHUNK)]
+    return Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in ("distance", "triangle", "points", "u", "v")))
+
+
+def winding_number_tree(index: TreeIndex, points, accuracy: float = ACCURACY) -> np.ndarray:
+    """The generalized winding number by Barill et al.'s tree sum: a child subtree whose
+    centroid is farther than ``accuracy`` times its radius counts as its dipole, a leaf nearer
+    than that as the exact sum of its triangles' solid angles, a nearer wide node is opened."""
+    p = check_points(points)
+    try:
+        beta = float(accuracy)
+    except (TypeError, ValueError):
+        raise ValueError(f"accuracy must be a number, got {accuracy!r}") from None
+    if not beta >= 1.0:
+        raise ValueError(f"accuracy must be at least 1 (a subtree's radii), got {accuracy!r}")
+    m = len(p)
+    w = np.zeros(m)
+    if m == 0 or len(index) == 0:
+        return w
+    s_area, s_n, s_c, s_r = index.dipoles()
+    tv = index.tv64
+    pieces = [(np.arange(m), np.zeros(m, np.int64))]
+    while pieces:
+        rows, node = pieces.pop()
+        if rows.size > PAIRS:
+            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
+            continue
+        slot = index.slot[node]                                   # (F, 4)
+        c, n, r = s_c[node], s_n[node], s_r[node]                 # (F, 4, 3), (F, 4, 3), (F, 4)
+        d = c - p[rows][:, None, :]
+        dist = np.sqrt((d * d).sum(axis=2))
+        far = slot & (dist > beta * r)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dip = np.where(far, (d * n).sum(axis=2) / np.where(far, dist ** 3, 1.0), 0.0)
+        w += np.bincount(rows, dip.sum(axis=1), minlength=m) / (4.0 * math.pi)
+        near = slot & ~far
+        i, j = np.nonzero(near)
+        own, child = rows[i], index.children[node[i], j]
+        leaf = child < 0
+        if leaf.any():
+            o, tri = index.leaf_pairs(own[leaf], ~child[leaf])
+            t = tv[tri]
+            w += np.bincount(o, solid_angles(p[o], t[:, 0], t[:, 1], t[:, 2]), minlength=m) / (4.0 * math.pi)
+        if (~leaf).any():
+            pieces.append((own[~leaf], child[~leaf]))
+    return w
+
+
+def _ray_box_pairs(rays: Rays, ray_idx, boxes):
+    """(F, 4) bool: each ray's interval [tmin, tmax] meets each child box (F, 2, 3, 4), by
+    slabs in float64 widened by a few ulps, so a ray that grazes a box is never missed."""
+    o = rays.origins[ray_idx].astype(F64)[:, :, None]
+    d = rays.directions[ray_idx].astype(F64)[:, :, None]
+    lo, hi = boxes[:, 0], boxes[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0, t1 = (lo - o) * inv, (hi - o) * inv
+    zero = d == 0
+    inside = (o >= lo) & (o <= hi)
+    near = np.where(zero, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
+    far = np.where(zero, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    tn = near.max(axis=1)
+    tf = far.min(axis=1) * (1.0 + 1e-6) + 1e-300
+    tmin = rays.tmin[ray_idx].astype(F64)[:, None]
+    tmax = rays.tmax[ray_idx].astype(F64)[:, None]
+    with np.errstate(invalid="ignore"):
+        return (tn <= tf) & (tf >= tmin) & (tn <= tmax)
+
+
+def count_hits_tree(index: TreeIndex, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    """(M,) int32 distinct hits of each ray with tmin < t <= tmax, down the tree: every box
+    the ray's interval meets is opened and every triangle of a leaf it meets is tested by the
+    ray kernel (``intersect.intersect``); nothing but the hits' t is kept."""
+    rays = prepare_rays(origins, directions, tmin, tmax)
+    m = len(rays)
+    if m == 0 or len(index) == 0:
+        return np.zeros(m, np.int32)
+    tv = index.mesh.tri_vertices
+    found_r, found_t = [], []
+    pieces = [(np.arange(m), np.zeros(m, np.int64))]
+    while pieces:
+        rows, node = pieces.pop()
+        if rows.size > PAIRS:
+            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
+            continue
+        meet = _ray_box_pairs(rays, rows, index.boxes[node]) & index.slot[node]
+        i, j = np.nonzero(meet)
+        own, child = rows[i], index.children[node[i], j]
+        leaf = child < 0
+        if leaf.any():
+            r, tri = index.leaf_pairs(own[leaf], ~child[leaf])
+            t = intersect(rays, r, tri, tv)
+            ok = np.isfinite(t)
+            found_r.append(r[ok])
+            found_t.append(t[ok])
+        if (~leaf).any():
+            pieces.append((own[~leaf], child[~leaf]))
+    if not found_r:
+        return np.zeros(m, np.int32)
+    return _distinct_counts(np.concatenate(found_r), np.concatenate(found_t), m)
