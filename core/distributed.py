@@ -17,6 +17,10 @@ Fault tolerance is Dask's: a block is a pure function of its rays and the scene 
 when a worker dies the scheduler recomputes its blocks elsewhere and the answers are the
 same.  A missing or foreign scene file is reported on the client before any task runs.
 
+``closest(path, points)`` answers point queries the same way: (M, 3) dask points in, dask
+arrays ``distance``, ``triangle``, ``u``, ``v``, ``object_index`` and ``points`` out, each
+block searched by its worker's cached structure (``Accel.closest``).
+
 dask is imported when a function here is called; without it they raise ImportError
 saying what to install (``pip install hybrid_raycast[dask]``).
 """
@@ -332,3 +336,87 @@ def trace_frames(paths, origins_list, directions_list, *, kind: str = "auto", tm
         kind, plan = _choose(scenes[0], rays[0][0].shape[0], expected_rays, calibration, configs)
     key = _config_key(kind, configs, threads)
     return [_trace_scene(s, o, d, kind, tmin, tmax, key, plan, da) for s, (o, d) in zip(scenes, rays)]
+
+
+# -- point queries ---------------------------------------------------------------------------------
+
+NEAREST_DTYPE = np.dtype([("distance", np.float64), ("triangle", np.int32), ("u", np.float32), ("v", np.float32),
+                          ("object_index", np.int32), ("x", np.float64), ("y", np.float64), ("z", np.float64)])
+NEAREST_FIELDS = ("distance", "triangle", "u", "v", "object_index")
+
+
+def _closest_block(points, *, scene: SceneRef, kind: str, config: tuple, max_distance: float):
+    acc = _CACHE.get(scene, kind, config)
+    wall, cpu = time.perf_counter(), time.thread_time()
+    near = acc.closest(points, max_distance)
+    _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)
+    out = np.empty(len(near), NEAREST_DTYPE)
+    out["distance"], out["triangle"], out["u"], out["v"] = near.distance, near.triangle, near.u, near.v
+    out["x"], out["y"], out["z"] = near.points[:, 0], near.points[:, 1], near.points[:, 2]
+    obj = np.full(len(near), -1, np.int32)
+    if acc.mesh.object_index is not None:
+        found = near.found
+        obj[found] = acc.mesh.object_index[near.triangle[found]]
+    out["object_index"] = obj
+    return out
+
+
+@dataclass
+class DistributedNearest:
+    """Dask arrays, one entry per point, chunked like the points (nothing is computed yet).
+
+    distance: float64 (inf where nothing is within max_distance); triangle: int32 (-1 there);
+    u, v: float32 barycentrics; object_index: int32 into the scene file's object names (-1
+    there); points: (M, 3) float64 the closest points (NaN there).  kind: the structure the
+    workers build."""
+
+    distance: object
+    triangle: object
+    u: object
+    v: object
+    object_index: object
+    points: object
+    kind: str
+    scene: SceneRef
+
+    @property
+    def found(self):
+        return self.triangle >= 0
+
+    def compute(self, **kwargs) -> dict:
+        """Every field as a numpy array, in one pass over the graph (each block searched once)."""
+        import dask
+
+        names = NEAREST_FIELDS + ("points",)
+        values = dask.compute(*(getattr(self, f) for f in names), **kwargs)
+        return dict(zip(names, values))
+
+
+def closest(path, points, *, max_distance=np.inf, kind: str = "bvh", configs: dict | None = None,
+            threads: int = 1) -> DistributedNearest:
+    """The closest surface point of the scene file ``path`` to each of ``points`` (an (M, 3)
+    dask array chunked by rows), on the Dask cluster of the current client, as dask arrays.
+
+    kind: the structure each worker builds and keeps ('bvh' default; 'grid' and 'embree'
+    search a BVH they build on first use; 'brute' the float64 reference); max_distance:
+    inclusive, positive (inf: no limit); configs, threads: as ``trace``.  Raises
+    FileNotFoundError / core.SceneFileError naming the file, TypeError/ValueError for
+    malformed arguments, here, before any task runs."""
+    from .proximity import check_max_distance
+
+    da = _dask_array()
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    points = _as_rows(points, "points", da)
+    md = check_max_distance(max_distance)
+    scene = SceneRef.of(path)
+    config = _config_key(kind, configs, threads)
+    rows = points.chunks[0]
+    points = points.rechunk((rows, 3))
+    records = da.blockwise(
+        _closest_block, "i", points, "ij", dtype=NEAREST_DTYPE, concatenate=True, scene=scene, kind=kind,
+        config=config, max_distance=md, name=f"hybrid-raycast-closest-{kind}-" + _token(scene, kind, config, points, md),
+    )
+    xyz = da.stack([records["x"], records["y"], records["z"]], axis=1)
+    return DistributedNearest(*(records[f] for f in NEAREST_FIELDS), points=xyz, kind=kind, scene=scene)
+

@@ -17,6 +17,9 @@ mid-frame leaves the finished frames complete and no half-written file.
   laspy and PDAL read as named dimensions; the object-name table in a VLR
   (user id ``hybrid_raycast``, record id 1, names joined by newlines).
 - NPZ (``write_npz``): every field plus ``object_names``.
+
+``read_points`` reads the points of any PLY (ascii or binary), LAS (1.0-1.4) or numpy file,
+for the ``distance`` command (a scan checked against the model it came from).
 """
 
 from __future__ import annotations
@@ -29,7 +32,8 @@ import numpy as np
 
 from .atomic import atomic_path
 
-__all__ = ["FIELDS", "FORMATS", "write", "write_ply", "write_las", "write_npz", "LAS_SCALE"]
+__all__ = ["FIELDS", "FORMATS", "write", "write_ply", "write_las", "write_npz", "LAS_SCALE", "read_points",
+           "PointFileError"]
 
 #: per-point fields of a scan, and their dtype in the files
 FIELDS = {
@@ -187,3 +191,130 @@ def write(path, fmt: str, fields: dict, object_names, classification=None) -> Pa
     if fmt == "npz":
         return write_npz(path, fields, object_names)
     raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+
+
+# -- reading points (the distance command's input) -------------------------------------------
+
+#: PLY property types (Paul Bourke's PLY format description) and their numpy codes
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+class PointFileError(ValueError):
+    """A points file that cannot be read: the message names the file and what is wrong."""
+
+
+def _read_ply(path: Path) -> np.ndarray:
+    with open(path, "rb") as fh:
+        if fh.readline().strip() != b"ply":
+            raise PointFileError(f"{path}: not a PLY file (no 'ply' on the first line)")
+        fmt, elements = None, []
+        while True:
+            line = fh.readline()
+            if not line:
+                raise PointFileError(f"{path}: the PLY header has no end_header")
+            words = line.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and elements:
+                if words[1] == "list":
+                    elements[-1][2].append((words[-1], None))
+                else:
+                    elements[-1][2].append((words[2], _PLY_TYPES.get(words[1])))
+        names = [e[0] for e in elements]
+        if "vertex" not in names:
+            raise PointFileError(f"{path}: the PLY file has no vertex element")
+        if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+            raise PointFileError(f"{path}: unknown PLY format {fmt!r}")
+        before = elements[:names.index("vertex")]
+        _, count, props = elements[names.index("vertex")]
+        if any(t is None for e in before for _, t in e[2]) or any(t is None for _, t in props):
+            raise PointFileError(f"{path}: list properties before or in the vertex element are not supported")
+        if not {"x", "y", "z"} <= {n for n, _ in props}:
+            raise PointFileError(f"{path}: the vertex element has no x, y and z properties")
+        if fmt == "ascii":
+            skip = sum(e[1] for e in before)
+            rows = [fh.readline() for _ in range(skip + count)][skip:]
+            try:
+                table = np.array([r.split()[:len(props)] for r in rows], np.float64)
+            except ValueError:
+                raise PointFileError(f"{path}: a vertex line is not {len(props)} numbers") from None
+            if table.shape != (count, len(props)):
+                raise PointFileError(f"{path}: the file ends before its {count:,} vertices")
+            col = {n: i for i, (n, _) in enumerate(props)}
+            return table[:, [col["x"], col["y"], col["z"]]]
+        end = "<" if fmt == "binary_little_endian" else ">"
+        for _, n, pr in before:
+            fh.seek(n * np.dtype([(a, end + t) for a, t in pr]).itemsize, 1)
+        dt = np.dtype([(a, end + t) for a, t in props])
+        data = np.frombuffer(fh.read(count * dt.itemsize), dt)
+        if len(data) != count:
+            raise PointFileError(f"{path}: the file ends before its {count:,} vertices")
+        return np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float64)
+
+
+def _read_las(path: Path) -> np.ndarray:
+    """LAS 1.0-1.4, any point data record format (X, Y, Z lead every record); not LAZ."""
+    with open(path, "rb") as fh:
+        head = fh.read(375)
+        if len(head) < 227 or head[:4] != b"LASF":
+            raise PointFileError(f"{path}: not a LAS file (no LASF signature)")
+        minor = head[25]
+        offset, = struct.unpack_from("<I", head, 96)
+        fmt, length = struct.unpack_from("<BH", head, 104)
+        if fmt & 0xC0:
+            raise PointFileError(f"{path}: compressed LAZ is not supported: decompress it to LAS first")
+        count, = struct.unpack_from("<I", head, 107)
+        if minor >= 4 and len(head) >= 255 and count == 0:
+            count, = struct.unpack_from("<Q", head, 247)
+        scale = np.array(struct.unpack_from("<3d", head, 131))
+        shift = np.array(struct.unpack_from("<3d", head, 155))
+        fh.seek(offset)
+        raw = fh.read(count * length)
+    if len(raw) < count * length or length < 12:
+        raise PointFileError(f"{path}: the file ends before its {count:,} points")
+    rec = np.frombuffer(raw, np.dtype({"names": ["X", "Y", "Z"], "formats": ["<i4"] * 3, "offsets": [0, 4, 8],
+                                       "itemsize": length}), count)
+    return np.stack([rec["X"], rec["Y"], rec["Z"]], axis=1) * scale + shift
+
+
+def read_points(path) -> np.ndarray:
+    """(N, 3) float64 points from a PLY (ascii or binary; its vertex element's x, y, z), LAS
+    (1.0-1.4, any point format; not LAZ), .npz (an array 'points' (N, 3), or 'x', 'y', 'z')
+    or .npy ((N, 3)) file; ``PointFileError`` (a ValueError) naming the file otherwise."""
+    p = Path(path)
+    if not p.is_file():
+        raise PointFileError(f"{p}: no such file")
+    ext = p.suffix.lower()
+    try:
+        if ext == ".ply":
+            pts = _read_ply(p)
+        elif ext == ".las":
+            pts = _read_las(p)
+        elif ext == ".npy":
+            pts = np.asarray(np.load(p, allow_pickle=False), np.float64)
+        elif ext == ".npz":
+            with np.load(p, allow_pickle=False) as z:
+                if "points" in z.files:
+                    pts = np.asarray(z["points"], np.float64)
+                elif {"x", "y", "z"} <= set(z.files):
+                    pts = np.stack([z["x"], z["y"], z["z"]], axis=1).astype(np.float64)
+                else:
+                    raise PointFileError(f"{p}: the .npz holds no 'points' array nor 'x', 'y', 'z' "
+                                         f"(it has {', '.join(z.files) or 'nothing'})")
+        else:
+            raise PointFileError(f"{p}: unknown points format {ext or '(no extension)'}: use .ply, .las, .npz or .npy")
+    except (OSError, struct.error, ValueError) as e:
+        if isinstance(e, PointFileError):
+            raise
+        raise PointFileError(f"{p}: cannot read: {e}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise PointFileError(f"{p}: the points have shape {pts.shape}, not (N, 3)")
+    return pts

@@ -373,12 +373,11 @@ OPEN_MARGIN = 1e-5
 def _box_d2(p32, boxes32):
     """Squared distance (float32) from each p (F, 3) to each of the 4 child boxes
     (F, 6, 4: lo x, y, z then hi x, y, z, by slot): (F, 4), NaN for an empty slot."""
-    d2 = None
-    for a in range(3):
-        q = p32[:, a:a + 1]
-        gap = np.maximum(np.maximum(boxes32[:, a] - q, q - boxes32[:, 3 + a]), np.float32(0))
-        d2 = gap * gap if d2 is None else d2 + gap * gap
-    return d2
+    q = p32[:, :, None]
+    gap = np.subtract(boxes32[:, :3], q)
+    np.maximum(gap, q - boxes32[:, 3:], out=gap)
+    np.maximum(gap, np.float32(0), out=gap)
+    return np.einsum("fak,fak->fk", gap, gap)
 
 
 def _rounding(p32) -> np.ndarray:

@@ -17,6 +17,10 @@ Commands
                a progress line per frame on stderr
     scan       sensor scans from ``--sensor NAME`` over ``--frames A-B`` into ``--output DIR``,
                one ``--format ply|las|npz`` file per frame (``operators/scan.py``)
+    distance   each of ``--points FILE``'s points (.ply, .las, .npz, .npy) against the evaluated
+               scene: its distance, nearest object and signed distance (negative inside, by
+               the winding number); the JSON's summary, and with ``--output DIR``
+               ``DIR/hybrid_raycast_distance.npz`` per point (``--max-distance D`` bounds it)
 
 Options: ``--rays N`` (the expected rays: a custom budget), ``--json PATH`` (``-`` for
 stdout), ``--output DIR`` (the plot PNG, the passes, and the JSON when ``--json`` is not
@@ -24,7 +28,8 @@ given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
 NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
 ``--save [PATH]``, ``--frames 1-250`` (export, scan), ``--sensor NAME``,
-``--format ply|las|npz``, ``--space world|sensor`` (scan).
+``--format ply|las|npz``, ``--space world|sensor`` (scan), ``--points FILE``,
+``--max-distance D`` (distance).
 
 ``--json -`` puts the JSON, and nothing else, on stdout: while the command runs, file
 descriptor 1 points at stderr, so every message (ours, Blender's own C-level prints such
@@ -44,7 +49,7 @@ Exit codes (one line on stderr says why):
     0  success
     1  internal error (a bug: the traceback is printed too)
     2  bad arguments (unknown option or command, --rays 0 or inf, a missing or non-.blend
-       file before -c or in --blend, ...)
+       file before -c or in --blend, an unreadable --points file, ...)
     3  no geometry (nothing visible and render-enabled has triangles)
     4  unwritable path (--json, --output or the calibration file)
     5  invalid geometry (NaN or infinite vertex coordinates)
@@ -64,6 +69,7 @@ import traceback
 from pathlib import Path
 
 import bpy
+import numpy as np
 
 from ..core.decide.measurements import SCALE_NOTES
 from ..settings import RAYS_MAX
@@ -74,7 +80,9 @@ from .jobs import BadInput, HRCError, Job, Unwritable, run_sync, writable_dir
 from .trace import apply_trace, trace_job
 
 COMMAND = "hybrid_raycast"
-COMMANDS = ("analyze", "trace", "calibrate", "report", "export", "scan")
+COMMANDS = ("analyze", "trace", "calibrate", "report", "export", "scan", "distance")
+#: what ``distance --output DIR`` writes
+DISTANCE_NPZ = "hybrid_raycast_distance.npz"
 #: exit codes of the CLI itself; each failure's own code is its HRCError's ``code`` (operators/jobs.py)
 EXIT_OK, EXIT_INTERNAL = 0, 1
 PLOT_PNG = "hybrid_raycast_plot.png"
@@ -141,6 +149,8 @@ def parser() -> argparse.ArgumentParser:
                    help="save the .blend afterwards (the AO bake, the results): to PATH, or the loaded file")
     p.add_argument("--frames", help="export: N, A-B or a list of them, e.g. 1-250; scan: A-B or N "
                    "(default: the scene's frame range)")
+    p.add_argument("--points", help="distance: the points to measure (.ply, .las, .npz or .npy)")
+    p.add_argument("--max-distance", type=_positive(float), help="distance: search no farther (default: no limit)")
     return p
 
 
@@ -361,6 +371,55 @@ def _export(args, out_dir, stdout, stderr) -> dict:
     return {"command": "export", "scene": scene.name, "output": str(out_dir), "files": files}
 
 
+def _distance(args, out_dir, stdout) -> dict:
+    """Each point's distance to the evaluated scene, its nearest object and its signed
+    distance (negative inside, by the winding number): a scan checked against its model."""
+    from ..core.pointcloud import PointFileError, read_points
+    from . import query
+
+    if not args.points:
+        raise BadInput("bad arguments: distance needs --points FILE (.ply, .las, .npz or .npy)")
+    try:
+        pts = read_points(args.points)
+    except PointFileError as e:
+        raise BadInput(f"bad arguments: --points {e}") from None
+    scene = _scene(args)
+    depsgraph = _view_layer(scene).depsgraph
+    md = args.max_distance if args.max_distance is not None else math.inf
+    near = query.closest(pts, max_distance=md, depsgraph=depsgraph, selected_only=args.selected_only)
+    inside = query.inside(pts, depsgraph=depsgraph, selected_only=args.selected_only)
+    signed = np.where(inside, -near.distance, near.distance)
+    found = near.found
+    d = near.distance[found]
+    stats = {"points": int(len(pts)), "found": int(found.sum()), "inside": int(inside.sum())}
+    if d.size:
+        stats.update({"median": float(np.median(d)), "p95": float(np.percentile(d, 95)), "max": float(d.max()),
+                      "mean": float(d.mean())})
+    per_object = {}
+    for i in np.unique(near.object_index[found]):
+        per_object[str(near.object_names[i])] = int((near.object_index == i).sum())
+    doc = {"command": "distance", "scene": scene.name, "file": str(args.points),
+           "max_distance": md if math.isfinite(md) else None, "distance": stats, "nearest_objects": per_object}
+    if out_dir is not None:
+        from ..core.atomic import atomic_path
+
+        target = out_dir / DISTANCE_NPZ
+        try:
+            with atomic_path(target) as tmp:
+                with open(tmp, "wb") as fh:
+                    np.savez(fh, points=pts, distance=near.distance, signed_distance=signed, inside=inside,
+                             object_index=near.object_index, object_names=np.asarray(near.object_names, str),
+                             closest=near.points, normals=near.normals)
+        except OSError as e:
+            raise Unwritable(f"unwritable path: {target}: {e.strerror or e}") from None
+        doc["files"] = {"distance": str(target)}
+    line = (f"{stats['found']:,} of {stats['points']:,} points within reach, {stats['inside']:,} inside"
+            + (f"; distance median {stats['median']:.4g}, p95 {stats['p95']:.4g}, max {stats['max']:.4g}"
+               if d.size else ""))
+    print(f"{COMMAND} distance: {line}", file=stdout, flush=True)
+    return doc
+
+
 def _save_target(args) -> Path | None:
     """Where ``--save`` writes (checked before any work); None without ``--save``."""
     if args.save is None:
@@ -420,6 +479,10 @@ def _run(args, stdout, write_json, stderr=None) -> int:
         if args.save is not None:
             raise BadInput("bad arguments: --save: export changes no scene")
         doc = _export(args, out_dir, stdout, stderr or sys.stderr)
+    elif args.command == "distance":
+        if args.save is not None:
+            raise BadInput("bad arguments: --save: distance changes no scene")
+        doc = _distance(args, out_dir, stdout)
     elif args.command == "scan":
         from .scan import scan_command
 

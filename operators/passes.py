@@ -182,8 +182,9 @@ def save_image(img, path) -> str:
 
 # -- ambient occlusion --------------------------------------------------------------------------
 
-def ao_target(scene, view_layer, name: str | None = None):
-    """The mesh object to bake: ``name``, else the active object, else the first selected mesh."""
+def ao_target(scene, view_layer, name: str | None = None, what: str = "the AO bake"):
+    """The mesh object to bake: ``name``, else the active object, else the first selected mesh
+    (``what``: the bake, for the messages)."""
     if name:
         ob = scene.objects.get(name)
         if ob is None:
@@ -199,7 +200,7 @@ def ao_target(scene, view_layer, name: str | None = None):
     if ob.type != "MESH":
         raise NothingToTrace(f"no mesh to bake: '{ob.name}' is a {ob.type.lower()}, not a mesh")
     if ob.mode == "EDIT":
-        raise BadInput(f"the AO bake needs Object Mode: leave Edit Mode on '{ob.name}' first")
+        raise BadInput(f"{what} needs Object Mode: leave Edit Mode on '{ob.name}' first")
     if len(ob.data.vertices) == 0:
         raise NothingToTrace(f"no mesh to bake: '{ob.name}' has no vertices")
     return ob
@@ -214,8 +215,11 @@ def _vertex_normals(me) -> np.ndarray:
     return n.reshape(-1, 3)
 
 
-def ao_workload(ob, depsgraph, samples: int, distance: float, scene_diagonal: float, seed: int = 0) -> dict:
-    """Hemisphere rays from every vertex of ``ob`` (see the module doc)."""
+def bake_vertices(ob, depsgraph, what: str = "bake"):
+    """(world positions (V, 3), world vertex normals (V, 3), not normalised; a note or None)
+    of ``ob``'s original vertices, float64, where a bake writes its per-vertex values:
+    the evaluated positions when its modifiers only deform it (or subdivide it, whose first
+    vertices are the originals' limit positions), else the original ones with a note."""
     ev = ob.evaluated_get(depsgraph)
     me_eval, me = ev.data, ob.data
     V = len(me.vertices)
@@ -230,20 +234,25 @@ def ao_workload(ob, depsgraph, samples: int, distance: float, scene_diagonal: fl
         src = me
         if me_eval is not None:
             note = (f"'{ob.name}': its modifiers change the vertex count ({V} -> {len(me_eval.vertices)}); "
-                    "baked at the original vertices, which may lie off the evaluated surface")
+                    f"{what} at the original vertices, which may lie off the evaluated surface")
     co = np.empty(len(src.vertices) * 3, np.float32)
     src.vertices.foreach_get("co", co)
     co = co.reshape(-1, 3)[:V].astype(np.float64)
     if not np.isfinite(co).all():
-        raise BadInput(f"'{ob.name}' has NaN or infinite vertex coordinates: nothing to bake from")
+        raise BadInput(f"'{ob.name}' has NaN or infinite vertex coordinates: nothing to {what} from")
     nrm = _vertex_normals(src)[:V].astype(np.float64)
     M = _matrix(ev.matrix_world)
     A, t = M[:3, :3], M[:3, 3]
-    p = co @ A.T + t
     try:
         nw = nrm @ np.linalg.inv(A)  # normals transform by the inverse transpose
     except np.linalg.LinAlgError:
-        raise BadInput(f"'{ob.name}' has a degenerate (zero-scale) transform: nothing to bake from") from None
+        raise BadInput(f"'{ob.name}' has a degenerate (zero-scale) transform: nothing to {what} from") from None
+    return co @ A.T + t, nw, note
+
+
+def ao_workload(ob, depsgraph, samples: int, distance: float, scene_diagonal: float, seed: int = 0) -> dict:
+    """Hemisphere rays from every vertex of ``ob`` (see the module doc)."""
+    p, nw, note = bake_vertices(ob, depsgraph, "bake")
     length = np.linalg.norm(nw, axis=1)
     bad = ~(length > 0) | ~np.isfinite(length)
     nw[bad] = (0.0, 0.0, 1.0)  # loose vertices: an arbitrary hemisphere

@@ -375,3 +375,41 @@ def test_a_missing_or_non_blend_file_before_c_exits_2_with_one_line(fresh, addon
     got = addon.operators.cli.main(["analyze"], stdout=out, stderr=err,
                                    blender_argv=["blender", "-b", str(blend), "-c", "hybrid_raycast", "analyze"])
     assert got == 0, err.getvalue()
+
+
+def test_distance_measures_each_point_against_the_scene_and_writes_them(fresh, addon, tmp_path):
+    """A cloud above, inside and beside the cube (and over the ground), as a binary PLY that
+    plyfile writes: distances, nearest objects, signs and the npz of every point."""
+    plyfile = pytest.importorskip("plyfile")
+    simple_scene()
+    pts = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.5, 0.5, 0.25]])
+    v = np.array([tuple(p) for p in pts], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    path = tmp_path / "cloud.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")]).write(str(path))
+    code, out, err = run_cli(addon, "distance", "--points", str(path), "--output", str(tmp_path / "o"),
+                             "--json", str(tmp_path / "d.json"))
+    assert code == 0, err
+    doc = json.loads((tmp_path / "d.json").read_text())
+    assert doc["distance"]["points"] == 4 and doc["distance"]["found"] == 4 and doc["distance"]["inside"] == 2
+    assert set(doc["nearest_objects"]) == {"Cube", "Ground"}
+    z = np.load(tmp_path / "o" / "hybrid_raycast_distance.npz")
+    assert z["distance"] == pytest.approx([1.0, 1.0, 1.0, 0.5], abs=1e-6)
+    assert z["signed_distance"] == pytest.approx([1.0, -1.0, 1.0, -0.5], abs=1e-6)
+    assert list(z["object_names"][z["object_index"]]) == ["Cube", "Cube", "Ground", "Cube"]
+    assert "4 of 4 points within reach, 2 inside" in out
+
+
+@pytest.mark.parametrize("make, words", [
+    (None, "distance needs --points"),
+    (lambda p: p.write_text("not a ply\n"), "not a PLY file"),
+    (lambda p: None, "no such file"),
+])
+def test_distance_refuses_a_missing_or_unreadable_points_file_with_exit_2(fresh, addon, tmp_path, make, words):
+    simple_scene()
+    path = tmp_path / "bad.ply"
+    argv = ["distance"]
+    if make is not None:
+        make(path)
+        argv += ["--points", str(path)]
+    code, out, err = run_cli(addon, *argv)
+    assert code == 2 and words in one_line(err), err

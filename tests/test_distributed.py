@@ -208,3 +208,33 @@ def test_without_dask_the_error_says_what_to_install(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "dask.array", None)
     with pytest.raises(ImportError, match=r"pip install 'hybrid_raycast\[dask\]'"):
         hd.trace(tmp_path / "s.npz", None, None)
+
+
+@pytest.mark.parametrize("kind", ["bvh", "grid"])
+def test_closest_on_the_cluster_equals_a_local_search(client, tmp_path, kind):
+    mesh = soup(11)
+    path = core.save_mesh(mesh, tmp_path / "near.npz")
+    pts = np.random.default_rng(3).uniform(-0.2, 1.2, size=(5000, 3))
+    got = hd.closest(path, da.from_array(pts, chunks=(1250, 3)), kind=kind, max_distance=0.3).compute(
+        timeout=COMPUTE_TIMEOUT)
+    want = core.build(mesh, kind).closest(pts, max_distance=0.3)
+    assert np.array_equal(got["triangle"], want.triangle) and np.array_equal(got["distance"], want.distance)
+    assert np.array_equal(got["points"], want.points, equal_nan=True)
+    assert (~want.found).any() and want.found.any(), "some points are past max_distance, some not"
+    found = want.found
+    assert np.array_equal(got["object_index"][found], mesh.object_index[want.triangle[found]])
+    assert (got["object_index"][~found] == -1).all()
+
+
+def test_closest_refuses_bad_arguments_before_any_task(tmp_path):
+    path = core.save_mesh(soup(12, t=50), tmp_path / "s.npz")
+    pts = da.zeros((10, 3), chunks=(5, 3))
+    with pytest.raises(ValueError, match="max_distance must be positive"):
+        hd.closest(path, pts, max_distance=0)
+    with pytest.raises(ValueError, match="kind must be one of"):
+        hd.closest(path, pts, kind="octree")
+    with pytest.raises(TypeError, match="points must be a dask array"):
+        hd.closest(path, np.zeros((10, 3)))
+    with pytest.raises(FileNotFoundError):
+        hd.closest(tmp_path / "missing.npz", pts)
+

@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
@@ -377,3 +378,39 @@ def test_the_calibration_scales_have_one_description_in_the_operator_the_setting
     assert f"{addon.core.decide.measurements.FULL_CALIBRATION_MINUTES} minutes" in full
     assert f"{addon.core.decide.measurements.CALIBRATION_REPEATS} passes" in full
     assert full in " ".join(addon.operators.cli.parser().format_help().split())
+
+
+def test_bake_proximity_writes_each_vertexs_distance_to_the_other_geometry(fresh):
+    from blender_scenes import add_mesh
+
+    add_cube("Cube", 2.0, (0.0, 0.0, 3.0))  # its bottom face at z = 2
+    plane = add_mesh("Probe", [(0, 0, 0), (0.5, 0, 0), (0, 0.5, 0), (0.0, 0.0, 2.5)], [(0, 1, 2)])
+    bpy.context.view_layer.objects.active = plane
+    bpy.context.view_layer.update()
+    assert bpy.ops.hybrid_raycast.bake_proximity() == {"FINISHED"}
+    values = np.empty(4, np.float32)
+    plane.data.attributes["HRC Proximity"].data.foreach_get("value", values)
+    assert values == pytest.approx([2.0, 2.0, 2.0, 0.5], abs=1e-6)
+    # signed, to the cube: the fourth vertex is inside it
+    assert bpy.ops.hybrid_raycast.bake_proximity(to_object="Cube", attribute="to cube") == {"FINISHED"}
+    plane.data.attributes["to cube"].data.foreach_get("value", values)
+    assert values == pytest.approx([2.0, 2.0, 2.0, -0.5], abs=1e-6)
+    assert not props().stale, "a float attribute changes no triangle"
+    # beyond Max Distance: the max distance itself
+    assert bpy.ops.hybrid_raycast.bake_proximity(attribute="near", max_distance=1.0) == {"FINISHED"}
+    plane.data.attributes["near"].data.foreach_get("value", values)
+    assert values == pytest.approx([1.0, 1.0, 1.0, 0.5], abs=1e-6)
+    assert "UNDO" in bpy.types.HYBRID_RAYCAST_OT_bake_proximity.bl_options
+
+
+def test_bake_proximity_refuses_what_it_cannot_measure(fresh):
+    from blender_scenes import add_mesh
+
+    plane = add_mesh("Alone", [(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)])
+    bpy.context.view_layer.objects.active = plane
+    with pytest.raises(RuntimeError, match="no triangles to measure against"):
+        bpy.ops.hybrid_raycast.bake_proximity()
+    with pytest.raises(RuntimeError, match="no object named 'Nope'"):
+        bpy.ops.hybrid_raycast.bake_proximity(to_object="Nope")
+    with pytest.raises(RuntimeError, match="cannot be measured against itself"):
+        bpy.ops.hybrid_raycast.bake_proximity(to_object="Alone")

@@ -197,6 +197,7 @@ class VIEW3D_PT_hybrid_raycast_trace(_Base, bpy.types.Panel):
         col.prop(props, "ao_distance")
         col.prop(props, "ao_attribute", text="")
         col.operator("hybrid_raycast.trace", text="Bake AO", icon="SHADING_RENDERED").workload = "AO"
+        layout.operator("hybrid_raycast.bake_proximity", icon="DRIVER_DISTANCE")
         if props.trace_structure != "NONE":
             box = layout.box()
             box.label(text=f"{_rays(props.trace_rays)} {props.trace_workload.lower()} rays with {props.trace_structure}")
