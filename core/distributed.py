@@ -158,18 +158,29 @@ def clear_worker_cache() -> None:
 
 
 def _trace_block(origins, directions, tmin, tmax, *, scene: SceneRef, kind: str, config: tuple):
-    acc = _CACHE.get(scene, kind, config)
-    wall, cpu = time.perf_counter(), time.thread_time()
-    hits = acc.trace(origins, directions, tmin, tmax)
-    _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)
+    acc, hits = _timed(scene, kind, config, lambda acc: acc.trace(origins, directions, tmin, tmax))
     out = np.empty(len(hits), RESULT_DTYPE)
     out["t"], out["triangle"], out["u"], out["v"] = hits.t, hits.triangle, hits.u, hits.v
-    obj = np.full(len(hits), -1, np.int32)
-    if acc.mesh.object_index is not None:
-        hit = hits.hit
-        obj[hit] = acc.mesh.object_index[hits.triangle[hit]]
-    out["object_index"] = obj
+    out["object_index"] = _object_index(acc, hits.triangle)
     return out
+
+
+def _timed(scene: SceneRef, kind: str, config: tuple, query):
+    """(the worker's cached structure, ``query(structure)``), its time added to the worker's stats."""
+    acc = _CACHE.get(scene, kind, config)
+    wall, cpu = time.perf_counter(), time.thread_time()
+    result = query(acc)
+    _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)
+    return acc, result
+
+
+def _object_index(acc, triangle) -> np.ndarray:
+    """int32 index into the scene file's object names per triangle (-1 for -1, or no names)."""
+    obj = np.full(len(triangle), -1, np.int32)
+    if acc.mesh.object_index is not None:
+        found = triangle >= 0
+        obj[found] = acc.mesh.object_index[triangle[found]]
+    return obj
 
 
 # -- the client side -----------------------------------------------------------------------------
@@ -346,18 +357,11 @@ NEAREST_FIELDS = ("distance", "triangle", "u", "v", "object_index")
 
 
 def _closest_block(points, *, scene: SceneRef, kind: str, config: tuple, max_distance: float):
-    acc = _CACHE.get(scene, kind, config)
-    wall, cpu = time.perf_counter(), time.thread_time()
-    near = acc.closest(points, max_distance)
-    _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)
+    acc, near = _timed(scene, kind, config, lambda acc: acc.closest(points, max_distance))
     out = np.empty(len(near), NEAREST_DTYPE)
     out["distance"], out["triangle"], out["u"], out["v"] = near.distance, near.triangle, near.u, near.v
     out["x"], out["y"], out["z"] = near.points[:, 0], near.points[:, 1], near.points[:, 2]
-    obj = np.full(len(near), -1, np.int32)
-    if acc.mesh.object_index is not None:
-        found = near.found
-        obj[found] = acc.mesh.object_index[near.triangle[found]]
-    out["object_index"] = obj
+    out["object_index"] = _object_index(acc, near.triangle)
     return out
 
 

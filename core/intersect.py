@@ -151,6 +151,21 @@ def shear_rays(rays: Rays) -> Rays:
         return Rays(o32, d32, lo, hi, kx, ky, kz, sxyz)
 
 
+def slab_interval(o, d, lo, hi):
+    """(near, far): per axis, the ray parameters t where ``o + t d`` enters and leaves the
+    slab ``lo..hi`` (float64, shapes broadcast).  An axis the ray does not move along is
+    every t when ``o`` lies in the slab and none otherwise, so a zero component (+0.0 or
+    -0.0) needs no division by it; the box's interval is max(near) .. min(far) over the axes."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = 1.0 / d
+        t0, t1 = (lo - o) * inv, (hi - o) * inv
+    zero = d == 0
+    inside = (o >= lo) & (o <= hi)
+    near = np.where(zero, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
+    far = np.where(zero, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    return near, far
+
+
 def _edge_functions(ax, ay, bx, by, cx, cy):
     return cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .intersect import Rays, intersect, prepare_rays
+from .intersect import Rays, intersect, prepare_rays, slab_interval
 from .mesh import TriangleMesh
 from .multihit import SAME_POINT_ULPS
 
@@ -364,6 +364,19 @@ class TreeIndex:
         return levels
 
 
+def _walk(m: int):
+    """Depth first over pieces of (row, node) pairs, each at most ``PAIRS`` long, from every
+    row at the root: yields (rows, node, pieces), and the caller appends the next level's
+    pairs to ``pieces``, so the working memory stays bounded whatever the tree holds."""
+    pieces = [(np.arange(m), np.zeros(m, np.int64))]
+    while pieces:
+        rows, node = pieces.pop()
+        if rows.size > PAIRS:
+            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
+            continue
+        yield rows, node, pieces
+
+
 #: a float32 box distance is compared with the best float64 distance widened by the point's
 #: own float32 rounding (``_rounding``) and this relative margin, so float32 arithmetic can
 #: only open a box more, never prune one the exact arithmetic would open
@@ -431,12 +444,7 @@ def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
         first_leaf[rows[leaf]] = ~child[leaf]
         rows, node = rows[~leaf], child[~leaf]
     # branch and bound, depth first over bounded pieces of (point, node) pairs
-    pieces = [(np.arange(m), np.zeros(m, np.int64))]
-    while pieces:
-        rows, node = pieces.pop()
-        if rows.size > PAIRS:
-            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
-            continue
+    for rows, node, pieces in _walk(m):
         r, j = np.nonzero(_open(_box_d2(p32[rows], index.boxes32[node]), best[0][rows], slack[rows]))
         own, child = rows[r], index.children[node[r], j]
         leaf = child < 0
@@ -474,12 +482,7 @@ def winding_number_tree(index: TreeIndex, points, accuracy: float = ACCURACY) ->
         return w
     s_area, s_n, s_c, s_r = index.dipoles()
     tv = index.tv64
-    pieces = [(np.arange(m), np.zeros(m, np.int64))]
-    while pieces:
-        rows, node = pieces.pop()
-        if rows.size > PAIRS:
-            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
-            continue
+    for rows, node, pieces in _walk(m):
         slot = index.slot[node]                                   # (F, 4)
         c, n, r = s_c[node], s_n[node], s_r[node]                 # (F, 4, 3), (F, 4, 3), (F, 4)
         d = c - p[rows][:, None, :]
@@ -506,14 +509,7 @@ def _ray_box_pairs(rays: Rays, ray_idx, boxes):
     slabs in float64 widened by a few ulps, so a ray that grazes a box is never missed."""
     o = rays.origins[ray_idx].astype(F64)[:, :, None]
     d = rays.directions[ray_idx].astype(F64)[:, :, None]
-    lo, hi = boxes[:, 0], boxes[:, 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t0, t1 = (lo - o) * inv, (hi - o) * inv
-    zero = d == 0
-    inside = (o >= lo) & (o <= hi)
-    near = np.where(zero, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
-    far = np.where(zero, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    near, far = slab_interval(o, d, boxes[:, 0], boxes[:, 1])
     tn = near.max(axis=1)
     tf = far.min(axis=1) * (1.0 + 1e-6) + 1e-300
     tmin = rays.tmin[ray_idx].astype(F64)[:, None]
@@ -532,12 +528,7 @@ def count_hits_tree(index: TreeIndex, origins, directions, tmin=0.0, tmax=np.inf
         return np.zeros(m, np.int32)
     tv = index.mesh.tri_vertices
     found_r, found_t = [], []
-    pieces = [(np.arange(m), np.zeros(m, np.int64))]
-    while pieces:
-        rows, node = pieces.pop()
-        if rows.size > PAIRS:
-            pieces += [(rows[PAIRS:], node[PAIRS:]), (rows[:PAIRS], node[:PAIRS])]
-            continue
+    for rows, node, pieces in _walk(m):
         meet = _ray_box_pairs(rays, rows, index.boxes[node]) & index.slot[node]
         i, j = np.nonzero(meet)
         own, child = rows[i], index.children[node[i], j]

@@ -44,7 +44,7 @@ class OthersShare:
     other guests) took while the ``with`` block ran: machine busy time minus this
     process's, over the block's wall time times the cores.  ``share`` is None where the
     machine's counters cannot be read (not Linux) or the block was too short to resolve
-    (the counters tick every 10 ms)."""
+    (the counters advance in clock ticks)."""
 
     MIN_WALL = 0.2  # seconds: below this a tick's rounding is more than a few % of the figure
 
@@ -59,7 +59,7 @@ class OthersShare:
         if self._m0 is None or m1 is None or wall < self.MIN_WALL:
             return False
         others = (m1[0] - self._m0[0]) - (_process_seconds() - self._p0)
-        # the counters tick every 10 ms, so each end rounds: clip to what a share can be
+        # the counters advance in clock ticks, so each end rounds: clip to what a share can be
         self.share = min(1.0, max(0.0, others / (wall * (os.cpu_count() or 1))))
         return False
 

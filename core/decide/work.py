@@ -31,15 +31,17 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..intersect import slab_interval
+
 #: the default number of sample rays a plan traces through the grid (``core.plan``).  The
 #: estimate reads the sample's work counts, not its time: a mean over K rays whose spread
 #: between seeds the break-even multiplies by t_grid / (t_grid - t_bvh), large on the small
 #: real meshes.  Five plans of one scene must agree within max / min 1.2: independent
 #: uniform rays at 8,192 do not always; quasi-random rays (``rays.quasi_uniform_rays``) at
 #: 16,384 have a much smaller spread between seeds than at 8,192 and keep five plans within
-#: it.  The estimate's cost grows with K, and at 16,384 stays under the 5% of a 1e6-ray
-#: workload the decision allows it (BENCHMARKS.md, "Calibration and plan repeatability" and
-#: "The decision report").
+#: it.  The estimate's cost grows with K, and at 16,384 stays within what the decision allows
+#: it for a workload of a million rays (BENCHMARKS.md, "Calibration and plan repeatability"
+#: and "The decision report").
 DEFAULT_SAMPLES = 16384
 
 #: points per ray at which the reference count of the cells along the segment is read
@@ -102,13 +104,7 @@ def _geometric_work(grid, origins, directions, t_hit, tmin, tmax, refs: bool) ->
     cs = np.asarray(grid.cell_size, np.float64)
     res = np.asarray(grid.res, np.int64)
     hi = lo + cs * res
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inv = 1.0 / d
-        t0, t1 = (lo - o) * inv, (hi - o) * inv
-    zero = d == 0
-    inside = (o >= lo) & (o <= hi)
-    tn = np.where(zero, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
-    tf = np.where(zero, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    tn, tf = slab_interval(o, d, lo, hi)
     ts = np.maximum(tn.max(axis=1), np.broadcast_to(np.asarray(tmin, np.float64), (m,)))
     te = np.minimum(tf.min(axis=1), np.broadcast_to(np.asarray(tmax, np.float64), (m,)))
     th = np.asarray(t_hit, np.float64)
