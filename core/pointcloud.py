@@ -17,6 +17,13 @@ mid-frame leaves the finished frames complete and no half-written file.
   laspy and PDAL read as named dimensions; the object-name table in a VLR
   (user id ``hybrid_raycast``, record id 1, names joined by newlines).
 - NPZ (``write_npz``): every field plus ``object_names``.
+- PCD (``write_pcd``): PCD 0.7 (the Point Cloud Library's format), ``DATA binary``: x, y, z,
+  intensity, range, azimuth (float32), ring (uint16), time (float64), object_index,
+  instance_index (int32), normal_x, normal_y, normal_z (float32), packed little-endian; the
+  object-name table as header comments ``# object <index> <name>``.
+- KITTI (``write_kitti``): the KITTI odometry velodyne layout, x, y, z, intensity as float32,
+  four per point, nothing else (``np.fromfile(path, np.float32).reshape(-1, 4)``); the frames'
+  sensor poses go beside the scans in ``poses.txt`` (``write_poses``).
 
 ``read_points`` reads the points of any PLY (ascii or binary), LAS (1.0-1.4) or numpy file,
 for the ``distance`` command (a scan checked against the model it came from).
@@ -32,15 +39,17 @@ import numpy as np
 
 from .atomic import atomic_path
 
-__all__ = ["FIELDS", "FORMATS", "write", "write_ply", "write_las", "write_npz", "LAS_SCALE", "read_points",
-           "PointFileError"]
+__all__ = ["FIELDS", "FORMATS", "EXTENSIONS", "write", "write_ply", "write_las", "write_npz", "write_pcd",
+           "write_kitti", "write_poses", "LAS_SCALE", "read_points", "PointFileError"]
 
 #: per-point fields of a scan, and their dtype in the files
 FIELDS = {
     "points": ("f8", 3), "range": ("f4", 1), "intensity": ("f4", 1), "ring": ("u2", 1), "azimuth": ("f4", 1),
     "time": ("f8", 1), "object_index": ("i4", 1), "instance_index": ("i4", 1), "normals": ("f4", 3),
 }
-FORMATS = ("ply", "las", "npz")
+FORMATS = ("ply", "las", "npz", "pcd", "kitti")
+#: each format's file extension (a KITTI velodyne scan is a .bin)
+EXTENSIONS = {"ply": "ply", "las": "las", "npz": "npz", "pcd": "pcd", "kitti": "bin"}
 #: LAS coordinate resolution (metres): 0.1 mm, int32 covers +-214 km around the offset
 LAS_SCALE = 1e-4
 
@@ -182,14 +191,65 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
     return Path(path)
 
 
+def write_pcd(path, fields: dict, object_names) -> Path:
+    f, n = _checked(fields)
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("range", "<f4"),
+                      ("azimuth", "<f4"), ("ring", "<u2"), ("time", "<f8"), ("object_index", "<i4"),
+                      ("instance_index", "<i4"), ("normal_x", "<f4"), ("normal_y", "<f4"), ("normal_z", "<f4")])
+    rec = np.empty(n, dtype)
+    rec["x"], rec["y"], rec["z"] = f["points"].T
+    rec["normal_x"], rec["normal_y"], rec["normal_z"] = f["normals"].T
+    for k in ("intensity", "range", "azimuth", "ring", "time", "object_index", "instance_index"):
+        rec[k] = f[k]
+    kind = {"f": "F", "u": "U", "i": "I"}
+    lines = ["# .PCD v0.7 - Point Cloud Data file format, written by hybrid_raycast (sensor scan)"]
+    lines += [f"# object {i} {_one_line(name)}" for i, name in enumerate(object_names)]
+    lines += ["VERSION 0.7", "FIELDS " + " ".join(dtype.names),
+              "SIZE " + " ".join(str(dtype[k].itemsize) for k in dtype.names),
+              "TYPE " + " ".join(kind[dtype[k].kind] for k in dtype.names),
+              "COUNT " + " ".join("1" for _ in dtype.names), f"WIDTH {n}", "HEIGHT 1", "VIEWPOINT 0 0 0 1 0 0 0",
+              f"POINTS {n}", "DATA binary"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(lines) + "\n").encode("utf-8"))
+            fh.write(rec.tobytes())
+    return Path(path)
+
+
+def write_kitti(path, fields: dict, object_names=None) -> Path:
+    """x, y, z, intensity as float32 (the object table has no place in the format)."""
+    f, n = _checked(fields)
+    rec = np.empty((n, 4), "<f4")
+    rec[:, :3] = f["points"]
+    rec[:, 3] = f["intensity"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(rec.tobytes())
+    return Path(path)
+
+
+def write_poses(path, poses) -> Path:
+    """KITTI odometry's poses file: one line per frame, the top three rows of its (4, 4)
+    sensor-to-world matrix, row by row (12 numbers)."""
+    lines = [" ".join(f"{x:.9e}" for x in np.asarray(m, np.float64)[:3].ravel()) for m in poses]
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="ascii") as fh:
+            fh.write("".join(line + "\n" for line in lines))
+    return Path(path)
+
+
 def write(path, fmt: str, fields: dict, object_names, classification=None) -> Path:
-    """Write a scan as ``fmt`` ('ply', 'las' or 'npz')."""
+    """Write a scan as ``fmt`` (one of ``FORMATS``)."""
     if fmt == "ply":
         return write_ply(path, fields, object_names)
     if fmt == "las":
         return write_las(path, fields, object_names, classification)
     if fmt == "npz":
         return write_npz(path, fields, object_names)
+    if fmt == "pcd":
+        return write_pcd(path, fields, object_names)
+    if fmt == "kitti":
+        return write_kitti(path, fields, object_names)
     raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
 
 

@@ -16,7 +16,7 @@ Commands
                for tracing without Blender (``core.load_mesh``, ``core.distributed``);
                a progress line per frame on stderr
     scan       sensor scans from ``--sensor NAME`` over ``--frames A-B`` into ``--output DIR``,
-               one ``--format ply|las|npz`` file per frame (``operators/scan.py``)
+               one ``--format ply|las|npz|pcd|kitti`` file per frame (``operators/scan.py``)
     distance   each of ``--points FILE``'s points (.ply, .las, .npz, .npy) against the evaluated
                scene: its distance, nearest object and signed distance (negative inside, by
                the winding number); the JSON's summary, and with ``--output DIR``
@@ -28,7 +28,7 @@ given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
 NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
 ``--save [PATH]``, ``--frames 1-250`` (export, scan), ``--sensor NAME``,
-``--format ply|las|npz``, ``--space world|sensor`` (scan), ``--points FILE``,
+``--format ply|las|npz|pcd|kitti``, ``--space world|sensor`` (scan), ``--points FILE``,
 ``--max-distance D`` (distance).
 
 ``--json -`` puts the JSON, and nothing else, on stdout: while the command runs, file
@@ -71,6 +71,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ..core import pointcloud
 from ..core.decide.measurements import SCALE_NOTES
 from ..settings import RAYS_MAX
 from . import calibrate as calibrate_mod
@@ -143,7 +144,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", choices=("tiny", "quick", "default"), default="default",
                    help=f"calibrate: how much to measure (default: {SCALE_NOTES['default']})")
     p.add_argument("--sensor", help="scan: the object to scan from (its hybrid_raycast_sensor settings)")
-    p.add_argument("--format", choices=("ply", "las", "npz"), help="scan: file format (default: the sensor's)")
+    p.add_argument("--format", choices=pointcloud.FORMATS, help="scan: file format (default: the sensor's)")
     p.add_argument("--space", choices=("world", "sensor"), help="scan: coordinates of the points (default: the sensor's)")
     p.add_argument("--save", nargs="?", const="", metavar="PATH",
                    help="save the .blend afterwards (the AO bake, the results): to PATH, or the loaded file")

@@ -11,7 +11,8 @@ start inside it and see it.
   one frame as arrays (``ScanResult``), cast through ``query.cast`` (``api.cast``: the session cache of
   ``operators/session.py``, the structure the plan picks).
 - ``scan_job``: a frame range, one file per frame (``core.pointcloud``: PLY, LAS, npz,
-  each written atomically), for the Scan operator (modal with progress and Esc in the
+  PCD, KITTI .bin, each written atomically; with KITTI also ``poses.txt``, the sensor pose
+  of every frame written so far), for the Scan operator (modal with progress and Esc in the
   GUI, synchronous in background and from scripts) and the CLI's ``scan`` command.
   Each frame is evaluated and cast in the main thread (Blender data cannot be read from
   a worker); the interface redraws and Esc is read between frames.
@@ -106,11 +107,15 @@ class HybridRaycastSensor(bpy.types.PropertyGroup):
     # output
     directory: StringProperty(name="Folder", default="//scans/", subtype="DIR_PATH",
                               description="Where the Scan button writes one file per frame")
-    file_format: EnumProperty(name="Format", default="PLY",
+    file_format: EnumProperty(name="Format", default="PLY", description="The point-cloud file format of each frame",
                               items=(("PLY", "PLY", "Binary PLY with the object-name table in comments"),
                                      ("LAS", "LAS", "LAS 1.4 (format 6 + extra bytes), classification from the "
                                                     "objects' 'classification' property"),
-                                     ("NPZ", "NPZ", "numpy .npz arrays")))
+                                     ("NPZ", "NPZ", "numpy .npz arrays"),
+                                     ("PCD", "PCD", "PCD 0.7, binary (the Point Cloud Library's format), the "
+                                                    "object-name table in comments"),
+                                     ("KITTI", "KITTI", "KITTI velodyne .bin (x, y, z, intensity as float32) "
+                                                        "and the frames' sensor poses in poses.txt")))
     space: EnumProperty(name="Space", default="WORLD",
                         items=(("WORLD", "World", "Points and normals in world coordinates"),
                                ("SENSOR", "Sensor", "Points and normals in the sensor object's frame")))
@@ -343,7 +348,11 @@ def output_folder(directory) -> Path:
 
 
 def file_name(ob, frame: int, fmt: str) -> str:
-    return f"{bpy.path.clean_name(ob.name)}_{frame:05d}.{fmt.lower()}"
+    return f"{bpy.path.clean_name(ob.name)}_{frame:05d}.{pointcloud.EXTENSIONS[fmt.lower()]}"
+
+
+#: the poses file a KITTI scan writes beside its frames (KITTI odometry's layout)
+POSES_NAME = "poses.txt"
 
 
 def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view_layer=None, written=None):
@@ -372,6 +381,7 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     count = end - start + 1
     rays = points = 0
     structure = "auto"
+    poses = []
     try:
         for i, frame in enumerate(range(start, end + 1)):
             job.progress(i / count, f"frame {frame} ({i + 1} of {count})")
@@ -383,6 +393,9 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
             structure = result.structure
             try:
                 written.append(write_scan(result, folder / file_name(ob, frame, fmt), fmt))
+                if fmt == "kitti":  # rewritten whole after each frame: it always matches the frames written
+                    poses.append(result.sensor_matrix)
+                    pointcloud.write_poses(folder / POSES_NAME, poses)
             except OSError as e:
                 raise Unwritable(f"unwritable path: {folder}: {e.strerror or e}") from None
             except ValueError as e:

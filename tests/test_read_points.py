@@ -52,3 +52,55 @@ def test_what_it_cannot_read_is_an_error_naming_the_file(tmp_path):
         with pytest.raises(pc.PointFileError, match=words) as e:
             pc.read_points(tmp_path / name)
         assert name in str(e.value)
+
+
+def scan_fields(n=40, seed=1):
+    rng = np.random.default_rng(seed)
+    return {"points": rng.uniform(-50, 50, (n, 3)), "range": rng.uniform(1, 90, n).astype(np.float32),
+            "intensity": rng.uniform(0, 1, n).astype(np.float32), "ring": rng.integers(0, 64, n).astype(np.uint16),
+            "azimuth": rng.uniform(0, 360, n).astype(np.float32), "time": rng.uniform(0, 0.1, n),
+            "object_index": rng.integers(0, 3, n).astype(np.int32),
+            "instance_index": rng.integers(0, 3, n).astype(np.int32),
+            "normals": rng.normal(size=(n, 3)).astype(np.float32)}
+
+
+def read_pcd(path):
+    """A few lines from the PCD 0.7 specification: ASCII header up to DATA, a packed binary body."""
+    raw = open(path, "rb").read()
+    head, body, comments = {}, 0, []
+    for line in raw.split(b"\n"):
+        body += len(line) + 1
+        text = line.decode("ascii")
+        if text.startswith("#"):
+            comments.append(text)
+            continue
+        key, *vals = text.split()
+        head[key] = vals
+        if key == "DATA":
+            break
+    assert head["DATA"] == ["binary"] and head["VERSION"] == ["0.7"]
+    code = {"F": "f", "U": "u", "I": "i"}
+    dt = np.dtype([(n, "<" + code[t] + s) for n, s, t in zip(head["FIELDS"], head["SIZE"], head["TYPE"])])
+    n = int(head["POINTS"][0])
+    assert int(head["WIDTH"][0]) * int(head["HEIGHT"][0]) == n
+    return np.frombuffer(raw[body:body + n * dt.itemsize], dt), comments
+
+
+def test_pcd_and_kitti_read_back_by_their_specifications(tmp_path):
+    f = scan_fields()
+    names = ["Ground", "Wall one", "Car"]
+    pc.write(tmp_path / "a.pcd", "pcd", f, names)
+    rec, comments = read_pcd(tmp_path / "a.pcd")
+    assert np.array_equal(np.c_[rec["x"], rec["y"], rec["z"]], f["points"].astype(np.float32))
+    for k in ("intensity", "range", "azimuth", "ring", "time", "object_index", "instance_index"):
+        assert np.array_equal(rec[k], f[k]), k
+    assert np.array_equal(np.c_[rec["normal_x"], rec["normal_y"], rec["normal_z"]], f["normals"])
+    assert [c.split(" ", 3)[3] for c in comments if c.startswith("# object ")] == names
+    pc.write(tmp_path / "a.bin", "kitti", f, names)
+    k = np.fromfile(tmp_path / "a.bin", np.float32).reshape(-1, 4)
+    assert np.array_equal(k[:, :3], f["points"].astype(np.float32)) and np.array_equal(k[:, 3], f["intensity"])
+    poses = [np.eye(4), np.array([[0, -1, 0, 5], [1, 0, 0, -2], [0, 0, 1, 1.5], [0, 0, 0, 1]], float)]
+    pc.write_poses(tmp_path / "poses.txt", poses)
+    back = np.loadtxt(tmp_path / "poses.txt").reshape(-1, 3, 4)
+    assert np.array_equal(back, np.stack(poses)[:, :3])
+    assert pc.EXTENSIONS["kitti"] == "bin" and set(pc.EXTENSIONS) == set(pc.FORMATS)

@@ -218,6 +218,23 @@ def test_operator_writes_one_complete_file_per_frame_equal_to_api_scan(fresh, ad
     assert [c.split(" ", 2)[2] for c in ply.comments if c.startswith("object ")] == list(ref.object_names)
 
 
+def test_a_kitti_scan_writes_a_bin_per_frame_and_every_frames_pose(fresh, addon, tmp_path):
+    scene, sensor = scene_with_sensor()
+    scan = addon.operators.scan
+    result = addon.operators.jobs.run_sync(
+        scan.scan_job(scene, addon.operators.jobs.Job(), sensor, frames=(2, 4), directory=str(tmp_path), fmt="kitti"))
+    assert sorted(os.listdir(tmp_path)) == ["Lidar_00002.bin", "Lidar_00003.bin", "Lidar_00004.bin", "poses.txt"]
+    assert len(result["files"]) == 3
+    poses = np.loadtxt(tmp_path / "poses.txt").reshape(-1, 3, 4)
+    for i, frame in enumerate((2, 3, 4)):
+        ref = addon.api.scan(sensor, frame=frame)
+        k = np.fromfile(tmp_path / f"Lidar_{frame:05d}.bin", np.float32).reshape(-1, 4)
+        assert np.array_equal(k[:, :3], ref.points.astype(np.float32)) and np.array_equal(k[:, 3], ref.intensity)
+        assert np.allclose(poses[i], ref.sensor_matrix[:3], rtol=0, atol=1e-8)
+    pcd = scan.write_scan(addon.api.scan(sensor, frame=2), tmp_path / "one.pcd", "pcd")
+    assert pcd.read_bytes().startswith(b"# .PCD v0.7")
+
+
 def test_a_scan_stopped_between_frames_leaves_finished_files_complete_and_no_partial_file(fresh, addon, tmp_path):
     scene, sensor = scene_with_sensor()
     scan = addon.operators.scan
