@@ -129,7 +129,7 @@ bench-distributed: $(VENV)/.stamp
 bench-scan: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/bench_scan.py
 
-## Closest-point queries: the numpy tree against Blender's BVHTree.find_nearest loop on flat grids of
+## Closest-point queries: the numpy tree against Blender's BVHTree.find_nearest loop and Open3D on flat grids of
 ## 20k and 1M triangles, and the winding number's tree against its exact sum (timing lock held).
 bench-proximity: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/bench_proximity.py $(BENCH_ARGS)
