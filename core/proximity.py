@@ -184,22 +184,27 @@ def _fresh_best(m, max_distance):
 
 # -- brute force (the reference) ------------------------------------------------------------------
 
+def _all_pairs(m: int, tris):
+    """(row, triangle) for every row in range(m) against every triangle in ``tris``, in blocks
+    of about ``BRUTE_PAIRS`` pairs (whole rows each): the brute forces' loop."""
+    if m == 0 or tris.size == 0:
+        return
+    per = max(1, BRUTE_PAIRS // tris.size)
+    for s in range(0, m, per):
+        rows = np.arange(s, min(m, s + per))
+        yield np.repeat(rows, tris.size), np.tile(tris, rows.size)
+
+
 def closest_brute(mesh: TriangleMesh, points, max_distance=np.inf) -> Nearest:
     """Every point against every valid triangle, in blocks: the reference for the tree."""
     p = check_points(points)
     md = check_max_distance(max_distance)
     tv64 = mesh.tri_vertices.astype(F64)
-    tris = np.flatnonzero(mesh.valid)
     best = _fresh_best(len(p), md)
-    if len(p) and tris.size:
-        per = max(1, BRUTE_PAIRS // tris.size)
-        for s in range(0, len(p), per):
-            rows = np.arange(s, min(len(p), s + per))
-            owner = np.repeat(rows, tris.size)
-            tri = np.tile(tris, rows.size)
-            t = tv64[tri]
-            d2, u, v = closest_on_triangles(p[owner], t[:, 0], t[:, 1], t[:, 2])
-            _reduce_pairs(owner, tri, d2, u, v, best)
+    for owner, tri in _all_pairs(len(p), np.flatnonzero(mesh.valid)):
+        t = tv64[tri]
+        d2, u, v = closest_on_triangles(p[owner], t[:, 0], t[:, 1], t[:, 2])
+        _reduce_pairs(owner, tri, d2, u, v, best)
     return _nearest(p, best, tv64)
 
 
@@ -218,15 +223,11 @@ def winding_number_brute(mesh: TriangleMesh, points) -> np.ndarray:
     """The exact generalized winding number of every point: the sum over all valid triangles."""
     p = check_points(points)
     tv64 = mesh.tri_vertices.astype(F64)
-    tris = np.flatnonzero(mesh.valid)
     w = np.zeros(len(p))
-    if len(p) and tris.size:
-        per = max(1, BRUTE_PAIRS // tris.size)
-        for s in range(0, len(p), per):
-            rows = np.arange(s, min(len(p), s + per))
-            owner = np.repeat(rows, tris.size)
-            t = tv64[np.tile(tris, rows.size)]
-            w[rows] += np.bincount(owner - s, solid_angles(p[owner], t[:, 0], t[:, 1], t[:, 2]), minlength=rows.size)
+    for owner, tri in _all_pairs(len(p), np.flatnonzero(mesh.valid)):
+        t = tv64[tri]
+        a, b = owner[0], owner[-1] + 1  # a block is whole consecutive rows
+        w[a:b] += np.bincount(owner - a, solid_angles(p[owner], t[:, 0], t[:, 1], t[:, 2]), minlength=b - a)
     return w / (4.0 * math.pi)
 
 
@@ -247,18 +248,12 @@ def count_hits_brute(mesh: TriangleMesh, origins, directions, tmin=0.0, tmax=np.
     """(M,) int32 distinct hits of every ray with every valid triangle (the reference)."""
     rays = prepare_rays(origins, directions, tmin, tmax)
     m = len(rays)
-    tris = np.flatnonzero(mesh.valid)
-    tv = mesh.tri_vertices
     found_r, found_t = [], []
-    if m and tris.size:
-        per = max(1, BRUTE_PAIRS // tris.size)
-        for s in range(0, m, per):
-            r = np.repeat(np.arange(s, min(m, s + per)), tris.size)
-            tri = np.tile(tris, min(m, s + per) - s)
-            t = intersect(rays, r, tri, tv)
-            ok = np.isfinite(t)
-            found_r.append(r[ok])
-            found_t.append(t[ok])
+    for r, tri in _all_pairs(m, np.flatnonzero(mesh.valid)):
+        t = intersect(rays, r, tri, mesh.tri_vertices)
+        ok = np.isfinite(t)
+        found_r.append(r[ok])
+        found_t.append(t[ok])
     if not found_r:
         return np.zeros(m, np.int32)
     return _distinct_counts(np.concatenate(found_r), np.concatenate(found_t), m)

@@ -396,9 +396,8 @@ def _distance(args, out_dir, stdout) -> dict:
     if d.size:
         stats.update({"median": float(np.median(d)), "p95": float(np.percentile(d, 95)), "max": float(d.max()),
                       "mean": float(d.mean())})
-    per_object = {}
-    for i in np.unique(near.object_index[found]):
-        per_object[str(near.object_names[i])] = int((near.object_index == i).sum())
+    ids, counts = np.unique(near.object_index[found], return_counts=True)
+    per_object = {str(near.object_names[i]): int(c) for i, c in zip(ids, counts)}
     doc = {"command": "distance", "scene": scene.name, "file": str(args.points),
            "max_distance": md if math.isfinite(md) else None, "distance": stats, "nearest_objects": per_object}
     if out_dir is not None:

@@ -43,14 +43,15 @@ def proximity_job(scene, job: Job, *, view_layer=None, target=None, to_object: s
     s = session.get(depsgraph, scene.hybrid_raycast)
     before = s.fingerprint
     mesh, inst = s.mesh, s.mesh.instances
-    owner = np.array([o is not None and o.name == ob.name for o in inst.objects])
     tri_owner = inst.instance_object[mesh.instance_index]
+
+    def of(target):  # per triangle: does it belong to ``target``?
+        return np.array([o is not None and o.name == target.name for o in inst.objects], bool)[tri_owner]
+
     if other is not None:
-        keep = np.array([o is not None and o.name == other.name for o in inst.objects])[tri_owner]
-        what = f"'{other.name}'"
+        keep, what = of(other), f"'{other.name}'"
     else:
-        keep = ~owner[tri_owner]
-        what = f"the geometry other than '{ob.name}'"
+        keep, what = ~of(ob), f"the geometry other than '{ob.name}'"
     if not keep.any():
         raise NoGeometry(f"no triangles to measure against: {what} has none visible")
     points, _, note = passes.bake_vertices(ob, depsgraph, "measure")

@@ -279,6 +279,23 @@ def _interpolate(corners, tri, u, v):
     return w0[:, None] * c[:, 0] + u[:, None].astype(np.float64) * c[:, 1] + v[:, None].astype(np.float64) * c[:, 2]
 
 
+def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
+    """(smooth normals (M, 3), UVs (M, 2)), float32, interpolated from the evaluated meshes'
+    corners at (tri, u, v), NaN where tri is -1; None for what was not asked."""
+    got = tri >= 0
+    kh, uh, vh = tri[got], u[got], v[got]
+    normals = coords = None
+    if smooth:
+        normals = np.full((len(tri), 3), np.nan, np.float32)
+        sn = _interpolate(inst.corner_normals, kh, uh, vh)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normals[got] = sn / np.linalg.norm(sn, axis=1, keepdims=True)
+    if uv:
+        coords = np.full((len(tri), 2), np.nan, np.float32)
+        coords[got] = _interpolate(inst.corner_uvs, kh, uh, vh)
+    return normals, coords
+
+
 # -- the queries -----------------------------------------------------------------------------
 
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
@@ -330,18 +347,11 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
         tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
         np.multiply(tt[:, None], rays[1], out=points[a:b])
         points[a:b] += rays[0]
-        if smooth or uv:
-            hit = k >= 0
-            kh, uh, vh = k[hit], h.u[hit], h.v[hit]
+        sn, uvk = _corner_data(inst, k, h.u, h.v, smooth, uv)
         if smooth:
-            sn = _interpolate(inst.corner_normals, kh, uh, vh)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                sn /= np.linalg.norm(sn, axis=1, keepdims=True)
-            smooth_n[a:b][~hit] = np.nan
-            smooth_n[a:b][hit] = sn
+            smooth_n[a:b] = sn
         if uv:
-            uvs[a:b][~hit] = np.nan
-            uvs[a:b][hit] = _interpolate(inst.corner_uvs, kh, uh, vh)
+            uvs[a:b] = uvk
     return CastResult(t=t, hit=tri >= 0, points=points, normals=normals, objects=objects, object_names=names,
                       object_index=obj, instance_index=ins, instance_matrices=inst.matrices, polygon_index=poly,
                       triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs, plan=s.plan)
@@ -467,17 +477,7 @@ def closest(points, *, max_distance=np.inf, depsgraph=None, selected_only: bool 
     tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
     k = n.triangle
     found = k >= 0
-    smooth_n = uvs = None
-    if smooth or uv:
-        kh, uh, vh = k[found], n.u[found], n.v[found]
-    if smooth:
-        smooth_n = np.full((len(p), 3), np.nan, np.float32)
-        sn = _interpolate(inst.corner_normals, kh, uh, vh)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            smooth_n[found] = sn / np.linalg.norm(sn, axis=1, keepdims=True)
-    if uv:
-        uvs = np.full((len(p), 2), np.nan, np.float32)
-        uvs[found] = _interpolate(inst.corner_uvs, kh, uh, vh)
+    smooth_n, uvs = _corner_data(inst, k, n.u, n.v, smooth, uv)
     return ClosestResult(distance=n.distance, found=found, points=n.points, normals=tri_normals[k], objects=objects,
                          object_names=names, object_index=tri_obj[k], instance_index=tri_ins[k],
                          instance_matrices=inst.matrices, polygon_index=tri_poly[k], triangle=k, u=n.u, v=n.v,
