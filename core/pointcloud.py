@@ -1,29 +1,44 @@
-"""Point-cloud files of a scan: binary PLY, LAS 1.4 and numpy .npz, written atomically.
+"""Point-cloud files of a scan: binary PLY, LAS 1.4, numpy .npz, PCD and KITTI .bin, written atomically.
 
 A scan is a dict of per-point arrays (``FIELDS``) plus ``object_names`` (the table that
-``object_index`` points into).  Every writer writes a temporary file beside the target
-and renames it into place (``os.replace``, atomic on one file system), so a scan stopped
-mid-frame leaves the finished frames complete and no half-written file.
+``object_index`` points into) and ``material_names`` (the table of ``material_index``, -1 for
+no material).  The fields ``OPTIONAL`` names may be left out of the dict (or be None): they
+are written with their default (``cos_incidence`` NaN, ``return_index`` and ``return_count`` 1,
+``material_index`` -1, ``classification`` 1 'unclassified'), so a scan dict from before
+they existed still writes.  ``return_index`` is the 1-based rank by range of a return among
+its beam's reported returns, ``return_count`` how many the beam reported;
+``classification`` an ASPRS class (the LAS 1.4 standard point classes: 2 ground, 6 building).
+
+Every writer writes a temporary file beside the target and renames it into place
+(``os.replace``, atomic on one file system), so a scan stopped mid-frame leaves the finished
+frames complete and no half-written file.
 
 - PLY (``write_ply``): binary little-endian, one ``vertex`` element with x, y, z (double),
   range, intensity, azimuth (float), ring (ushort), time (double), object_index,
-  instance_index (int), nx, ny, nz (float); the object-name table as header comments
-  ``comment object <index> <name>``.
+  instance_index (int), nx, ny, nz, cos_incidence (float), return_index, return_count
+  (uchar), material_index (int), classification (uchar); the name tables as header comments
+  ``comment object <index> <name>`` and ``comment material <index> <name>`` (the header is
+  ASCII: other characters of a name are written as Python escapes, ``\\xe9``, ``\\u2013``).
 - LAS (``write_las``): written here, LAS 1.4 point data record format 6 (ASPRS LAS
   Specification 1.4 R15, tables 3, 7 and 24), coordinates quantised to ``LAS_SCALE``
-  metres; intensity scaled to 0-65535, gps_time is the scan time, classification per
-  point from the caller (per object), user_data the ring (clipped to 255); range, ring,
-  azimuth, object_index, instance_index and the normal as Extra Bytes (record id 4), which
-  laspy and PDAL read as named dimensions; the object-name table in a VLR
-  (user id ``hybrid_raycast``, record id 1, names joined by newlines).
-- NPZ (``write_npz``): every field plus ``object_names``.
+  metres; intensity scaled to 0-65535, gps_time is the scan time, return number and number
+  of returns (byte 14, bits 0-3 and 4-7) from return_index and return_count clipped to
+  1-15, classification from the field, user_data the ring (clipped to 255); range, ring,
+  azimuth, object_index, instance_index, the normal, cos_incidence and material_index as
+  Extra Bytes (record id 4), which laspy and PDAL read as named dimensions; the name tables
+  in VLRs (user id ``hybrid_raycast``, record id 1 the objects, 2 the materials, names
+  joined by newlines).
+- NPZ (``write_npz``): every field plus ``object_names`` and ``material_names``.
 - PCD (``write_pcd``): PCD 0.7 (the Point Cloud Library's format), ``DATA binary``: x, y, z,
   intensity, range, azimuth (float32), ring (uint16), time (float64), object_index,
-  instance_index (int32), normal_x, normal_y, normal_z (float32), packed little-endian; the
-  object-name table as header comments ``# object <index> <name>``.
+  instance_index (int32), normal_x, normal_y, normal_z, cos_incidence (float32),
+  return_index, return_count (uint8), material_index (int32), classification (uint8), packed
+  little-endian; the name tables as header comments ``# object <index> <name>`` and
+  ``# material <index> <name>``.
 - KITTI (``write_kitti``): the KITTI odometry velodyne layout, x, y, z, intensity as float32,
-  four per point, nothing else (``np.fromfile(path, np.float32).reshape(-1, 4)``); the frames'
-  sensor poses go beside the scans in ``poses.txt`` (``write_poses``).
+  four per point, no other field and no name table
+  (``np.fromfile(path, np.float32).reshape(-1, 4)``); the frames' sensor poses go beside the
+  scans in ``poses.txt`` (``write_poses``).
 
 ``read_points`` reads the points of any PLY (ascii or binary), LAS (1.0-1.4) or numpy file,
 for the ``distance`` command (a scan checked against the model it came from).
@@ -39,14 +54,19 @@ import numpy as np
 
 from .atomic import atomic_path
 
-__all__ = ["FIELDS", "FORMATS", "EXTENSIONS", "write", "write_ply", "write_las", "write_npz", "write_pcd",
+__all__ = ["FIELDS", "OPTIONAL", "FORMATS", "EXTENSIONS", "write", "write_ply", "write_las", "write_npz", "write_pcd",
            "write_kitti", "write_poses", "LAS_SCALE", "read_points", "PointFileError"]
 
 #: per-point fields of a scan, and their dtype in the files
 FIELDS = {
     "points": ("f8", 3), "range": ("f4", 1), "intensity": ("f4", 1), "ring": ("u2", 1), "azimuth": ("f4", 1),
     "time": ("f8", 1), "object_index": ("i4", 1), "instance_index": ("i4", 1), "normals": ("f4", 3),
+    "cos_incidence": ("f4", 1), "return_index": ("u1", 1), "return_count": ("u1", 1),
+    "material_index": ("i4", 1), "classification": ("u1", 1),
 }
+#: fields a scan may leave out, and the value each point then gets (module doc)
+OPTIONAL = {"cos_incidence": np.nan, "return_index": 1, "return_count": 1, "material_index": -1,
+            "classification": 1}
 FORMATS = ("ply", "las", "npz", "pcd", "kitti")
 #: each format's file extension (a KITTI velodyne scan is a .bin)
 EXTENSIONS = {"ply": "ply", "las": "las", "npz": "npz", "pcd": "pcd", "kitti": "bin"}
@@ -55,39 +75,58 @@ LAS_SCALE = 1e-4
 
 
 def _checked(fields: dict) -> tuple[dict, int]:
-    missing = [k for k in FIELDS if k not in fields]
+    missing = [k for k in FIELDS if fields.get(k) is None and k not in OPTIONAL]
     if missing:
         raise ValueError(f"scan fields missing: {', '.join(missing)}")
     n = len(fields["points"])
     out = {}
     for k, (dt, width) in FIELDS.items():
+        if fields.get(k) is None:
+            out[k] = np.full(n, OPTIONAL[k], dt)
+            continue
         a = np.asarray(fields[k])
         want = (n, 3) if width == 3 else (n,)
         if a.shape != want:
             raise ValueError(f"scan field {k} must have shape {want}, got {a.shape}")
+        if dt == "u1" and a.size and (a.min() < 0 or a.max() > 255):
+            # astype would wrap 256 to 0 without a word
+            raise ValueError(f"scan field {k} must hold whole numbers 0-255, got {a.min()} to {a.max()}")
         out[k] = a.astype(dt, copy=False)
     return out, n
 
 
-def write_ply(path, fields: dict, object_names) -> Path:
+def _table(kind: str, names, prefix: str) -> list[str]:
+    """Header lines ``<prefix><kind> <index> <name>``, one per name."""
+    return [f"{prefix}{kind} {i} {_one_line(name)}" for i, name in enumerate(names)]
+
+
+#: the one-number fields PLY and PCD write under their own names
+_SCALARS = ("range", "intensity", "azimuth", "ring", "time", "object_index", "instance_index", "cos_incidence",
+            "return_index", "return_count", "material_index", "classification")
+
+
+def write_ply(path, fields: dict, object_names, *, material_names=()) -> Path:
     f, n = _checked(fields)
     dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("range", "<f4"), ("intensity", "<f4"),
                       ("azimuth", "<f4"), ("ring", "<u2"), ("time", "<f8"), ("object_index", "<i4"),
-                      ("instance_index", "<i4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")])
+                      ("instance_index", "<i4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+                      ("cos_incidence", "<f4"), ("return_index", "u1"), ("return_count", "u1"),
+                      ("material_index", "<i4"), ("classification", "u1")])
     rec = np.empty(n, dtype)
     rec["x"], rec["y"], rec["z"] = f["points"].T
     rec["nx"], rec["ny"], rec["nz"] = f["normals"].T
-    for k in ("range", "intensity", "azimuth", "ring", "time", "object_index", "instance_index"):
+    for k in _SCALARS:
         rec[k] = f[k]
-    plytype = {"f8": "double", "f4": "float", "u2": "ushort", "i4": "int"}
+    plytype = {"f8": "double", "f4": "float", "u2": "ushort", "i4": "int", "u1": "uchar"}
     lines = ["ply", "format binary_little_endian 1.0", "comment written by hybrid_raycast (sensor scan)"]
-    for i, name in enumerate(object_names):
-        lines.append(f"comment object {i} {_one_line(name)}")
+    lines += _table("object", object_names, "comment ") + _table("material", material_names, "comment ")
     lines.append(f"element vertex {n}")
     for name in dtype.names:
         lines.append(f"property {plytype[dtype[name].str[1:]]} {name}")
     lines.append("end_header")
-    header = ("\n".join(lines) + "\n").encode("utf-8")
+    # a PLY header is ASCII (plyfile.py, _PlyHeaderLines._decode, refuses other bytes): other
+    # characters of a name go as escapes, \xe9, \u2013
+    header = ("\n".join(lines) + "\n").encode("ascii", "backslashreplace")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(header)
@@ -99,11 +138,12 @@ def _one_line(name) -> str:
     return str(name).replace("\r", " ").replace("\n", " ")
 
 
-def write_npz(path, fields: dict, object_names) -> Path:
+def write_npz(path, fields: dict, object_names, *, material_names=()) -> Path:
     f, _ = _checked(fields)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, object_names=np.asarray([str(x) for x in object_names], dtype=str), **f)
+            np.savez(fh, object_names=np.asarray([str(x) for x in object_names], dtype=str),
+                     material_names=np.asarray([str(x) for x in material_names], dtype=str), **f)
     return Path(path)
 
 
@@ -118,7 +158,11 @@ _EB_TYPE = {"u2": 3, "i4": 6, "f4": 9, "f8": 10}
 _EXTRA = (("range", "f4", "range along the ray (m)"), ("ring", "u2", "laser channel / row"),
           ("azimuth", "f4", "firing azimuth (degrees)"), ("object_index", "i4", "index into the object table"),
           ("instance_index", "i4", "index of the instance hit"), ("normal_x", "f4", "surface normal x"),
-          ("normal_y", "f4", "surface normal y"), ("normal_z", "f4", "surface normal z"))
+          ("normal_y", "f4", "surface normal y"), ("normal_z", "f4", "surface normal z"),
+          ("cos_incidence", "f4", "|cos| beam to surface normal"),
+          ("material_index", "i4", "index into the material table"))
+#: record ids of the name tables' VLRs (user id hybrid_raycast)
+_OBJECT_NAMES_ID, _MATERIAL_NAMES_ID = 1, 2
 
 
 def _extra_bytes_vlr() -> bytes:
@@ -129,15 +173,14 @@ def _extra_bytes_vlr() -> bytes:
     return _VLR_HEADER.pack(0, b"LASF_Spec", 4, len(body), b"extra bytes") + body
 
 
-def _names_vlr(object_names) -> bytes:
-    body = "\n".join(_one_line(x) for x in object_names).encode("utf-8")
+def _names_vlr(names, kind: str, record_id: int) -> bytes:
+    body = "\n".join(_one_line(x) for x in names).encode("utf-8")
     if len(body) > 65535:
-        raise ValueError(f"object names take {len(body)} bytes; a LAS VLR holds at most 65,535")
-    return _VLR_HEADER.pack(0, b"hybrid_raycast", 1, len(body), b"object names, one per line") + body
+        raise ValueError(f"{kind} names take {len(body)} bytes; a LAS VLR holds at most 65,535")
+    return _VLR_HEADER.pack(0, b"hybrid_raycast", record_id, len(body), f"{kind} names, one per line".encode()) + body
 
 
-def write_las(path, fields: dict, object_names, classification=None) -> Path:
-    """``classification``: (N,) uint8 per point (default 1, 'unclassified')."""
+def write_las(path, fields: dict, object_names, *, material_names=()) -> Path:
     f, n = _checked(fields)
     pts = f["points"]
     extra = [(name, "<" + dt) for name, dt, _ in _EXTRA]
@@ -155,20 +198,18 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
     rec = np.zeros(n, dtype)
     rec["X"], rec["Y"], rec["Z"] = q.T
     rec["intensity"] = np.rint(np.clip(f["intensity"].astype(np.float64), 0, 1) * 65535).astype(np.uint16)
-    rec["returns"] = 0x11  # return 1 of 1
-    if classification is None:
-        rec["classification"] = 1
-    else:
-        c = np.asarray(classification)
-        if c.shape != (n,):
-            raise ValueError(f"classification must have shape ({n},), got {c.shape}")
-        rec["classification"] = c
+    # byte 14 of format 6 (LAS 1.4 R15 table 7): return number in bits 0-3, number of returns in 4-7
+    number = np.clip(f["return_index"], 1, 15)
+    rec["returns"] = number | (np.clip(f["return_count"], 1, 15) << 4)
+    rec["classification"] = f["classification"]
     rec["user_data"] = np.minimum(f["ring"], 255)
     rec["gps_time"] = f["time"]
-    for k in ("range", "ring", "azimuth", "object_index", "instance_index"):
+    for k in ("range", "ring", "azimuth", "object_index", "instance_index", "cos_incidence", "material_index"):
         rec[k] = f[k]
     rec["normal_x"], rec["normal_y"], rec["normal_z"] = f["normals"].T
-    vlrs = _extra_bytes_vlr() + _names_vlr(object_names)
+    by_return = np.bincount(number, minlength=16)[1:]  # the header's number of points by return 1-15
+    vlrs = (_extra_bytes_vlr() + _names_vlr(object_names, "object", _OBJECT_NAMES_ID)
+            + _names_vlr(material_names, "material", _MATERIAL_NAMES_ID))
     if n:
         real = q * LAS_SCALE + lo
         mins, maxs = real.min(axis=0), real.max(axis=0)
@@ -178,10 +219,10 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
     header = struct.pack(
         "<4sHH16sBB32s32sHHHIIBHI5I3d3d6dQQIQ15Q",
         b"LASF", 0, _WKT_BIT, b"", 1, 4, b"hybrid_raycast scan", b"hybrid_raycast", today.timetuple().tm_yday, today.year,
-        _HEADER_SIZE, _HEADER_SIZE + len(vlrs), 2, 6, dtype.itemsize, 0, 0, 0, 0, 0, 0,
+        _HEADER_SIZE, _HEADER_SIZE + len(vlrs), 3, 6, dtype.itemsize, 0, 0, 0, 0, 0, 0,
         LAS_SCALE, LAS_SCALE, LAS_SCALE, *lo,
         maxs[0], mins[0], maxs[1], mins[1], maxs[2], mins[2],
-        0, 0, 0, n, n, *([0] * 14))
+        0, 0, 0, n, *by_return)
     assert len(header) == _HEADER_SIZE
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
@@ -191,19 +232,21 @@ def write_las(path, fields: dict, object_names, classification=None) -> Path:
     return Path(path)
 
 
-def write_pcd(path, fields: dict, object_names) -> Path:
+def write_pcd(path, fields: dict, object_names, *, material_names=()) -> Path:
     f, n = _checked(fields)
     dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("range", "<f4"),
                       ("azimuth", "<f4"), ("ring", "<u2"), ("time", "<f8"), ("object_index", "<i4"),
-                      ("instance_index", "<i4"), ("normal_x", "<f4"), ("normal_y", "<f4"), ("normal_z", "<f4")])
+                      ("instance_index", "<i4"), ("normal_x", "<f4"), ("normal_y", "<f4"), ("normal_z", "<f4"),
+                      ("cos_incidence", "<f4"), ("return_index", "u1"), ("return_count", "u1"),
+                      ("material_index", "<i4"), ("classification", "u1")])
     rec = np.empty(n, dtype)
     rec["x"], rec["y"], rec["z"] = f["points"].T
     rec["normal_x"], rec["normal_y"], rec["normal_z"] = f["normals"].T
-    for k in ("intensity", "range", "azimuth", "ring", "time", "object_index", "instance_index"):
+    for k in _SCALARS:
         rec[k] = f[k]
     kind = {"f": "F", "u": "U", "i": "I"}
     lines = ["# .PCD v0.7 - Point Cloud Data file format, written by hybrid_raycast (sensor scan)"]
-    lines += [f"# object {i} {_one_line(name)}" for i, name in enumerate(object_names)]
+    lines += _table("object", object_names, "# ") + _table("material", material_names, "# ")
     lines += ["VERSION 0.7", "FIELDS " + " ".join(dtype.names),
               "SIZE " + " ".join(str(dtype[k].itemsize) for k in dtype.names),
               "TYPE " + " ".join(kind[dtype[k].kind] for k in dtype.names),
@@ -216,8 +259,8 @@ def write_pcd(path, fields: dict, object_names) -> Path:
     return Path(path)
 
 
-def write_kitti(path, fields: dict, object_names=None) -> Path:
-    """x, y, z, intensity as float32 (the object table has no place in the format)."""
+def write_kitti(path, fields: dict, object_names=None, *, material_names=()) -> Path:
+    """x, y, z, intensity as float32 (the name tables have no place in the format)."""
     f, n = _checked(fields)
     rec = np.empty((n, 4), "<f4")
     rec[:, :3] = f["points"]
@@ -238,19 +281,14 @@ def write_poses(path, poses) -> Path:
     return Path(path)
 
 
-def write(path, fmt: str, fields: dict, object_names, classification=None) -> Path:
+_WRITERS = {"ply": write_ply, "las": write_las, "npz": write_npz, "pcd": write_pcd, "kitti": write_kitti}
+
+
+def write(path, fmt: str, fields: dict, object_names, *, material_names=()) -> Path:
     """Write a scan as ``fmt`` (one of ``FORMATS``)."""
-    if fmt == "ply":
-        return write_ply(path, fields, object_names)
-    if fmt == "las":
-        return write_las(path, fields, object_names, classification)
-    if fmt == "npz":
-        return write_npz(path, fields, object_names)
-    if fmt == "pcd":
-        return write_pcd(path, fields, object_names)
-    if fmt == "kitti":
-        return write_kitti(path, fields, object_names)
-    raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if fmt not in _WRITERS:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    return _WRITERS[fmt](path, fields, object_names, material_names=material_names)
 
 
 # -- reading points (the distance command's input) -------------------------------------------

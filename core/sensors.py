@@ -27,7 +27,9 @@ fired, so a user can deskew or interpolate poses afterwards.
 repeats exactly and frames differ, an intensity from the lidar equation for a Lambertian
 target (received power ~ cos(incidence) / range^2, scaled to 1 for a perpendicular target at
 ``reference_range`` and clipped to [0, 1]), and returns with intensity below
-``drop_below`` dropped.
+``drop_below`` dropped.  ``core.returns.measure_returns`` is the same measurement for beams
+with a footprint (divergence, several echoes per beam, materials, weather, dropout); with one
+thin ray per beam and its other settings at their defaults it gives what ``measure`` gives.
 
 ``PRESETS``: a few real sensors, each with the document its figures come from.
 """
@@ -38,8 +40,12 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-__all__ = ["Pattern", "RotatingLidar", "AreaScanner", "DepthCamera", "Returns", "Preset", "PRESETS",
-           "measure", "camera_intrinsics"]
+__all__ = ["Pattern", "RotatingLidar", "AreaScanner", "DepthCamera", "Returns", "RETURN_MODES", "Preset",
+           "PRESETS", "measure", "camera_intrinsics"]
+
+#: which returns of a beam are reported: the strongest, the nearest, the farthest, or the
+#: strongest and the farthest ('DUAL', as dual-return LiDARs do); ``core.returns`` applies them
+RETURN_MODES = ("STRONGEST", "FIRST", "LAST", "DUAL")
 
 
 @dataclass
@@ -250,12 +256,36 @@ def camera_intrinsics(lens_mm, sensor_width_mm, sensor_height_mm, sensor_fit, wi
 
 @dataclass
 class Returns:
-    """What turns a hit into a measurement (module doc)."""
+    """What turns a hit into a measurement (module doc).  The fields after ``drop_below``
+    are used by ``core.returns.measure_returns`` only (beam divergence, multiple returns,
+    weather, dropout; that module's doc has the physics); ``measure`` ignores them."""
 
     noise_sigma: float = 0.0
     seed: int = 0
     reference_range: float = 10.0
     drop_below: float = 0.0
+    #: which returns of a beam are reported, one of ``RETURN_MODES``
+    mode: str = "STRONGEST"
+    #: full cone angle of a beam, milliradians (0: a thin ray)
+    beam_divergence: float = 0.0
+    #: sub-rays cast per beam over its cone
+    beam_samples: int = 1
+    #: metres: echoes of one beam closer than this merge into one return
+    range_resolution: float = 0.1
+    #: meteorological visibility, metres (inf: clear air); extinction 3.912 / visibility
+    visibility: float = float("inf")
+    #: per beam and frame, the probability of a false return (rain, fog) near the sensor
+    false_return_rate: float = 0.0
+    #: metres: false returns fall between range_min and this (at most range_max)
+    false_return_range: float = 5.0
+    false_return_intensity: float = 0.05
+    #: CARLA's dropout: every return dropped with dropoff_general_rate; one with intensity
+    #: I <= dropoff_intensity_limit also with dropoff_zero_intensity * (1 - I / limit)
+    dropoff_general_rate: float = 0.0
+    dropoff_intensity_limit: float = 1.0
+    dropoff_zero_intensity: float = 0.0
+    #: mirror reflections the caller follows (0: a mirror is an ordinary surface)
+    max_bounces: int = 0
 
     def __post_init__(self):
         self.noise_sigma = _number(self.noise_sigma, "noise_sigma", low=0.0)
@@ -264,6 +294,32 @@ class Returns:
         self.seed = int(self.seed)
         self.reference_range = _number(self.reference_range, "reference_range", positive=True)
         self.drop_below = _number(self.drop_below, "drop_below", low=0.0, high=1.0)
+        if not isinstance(self.mode, str):
+            raise TypeError(f"returns mode must be a string, one of {', '.join(RETURN_MODES)}; "
+                            f"got {type(self.mode).__name__}")
+        if self.mode not in RETURN_MODES:
+            raise ValueError(f"returns mode must be one of {', '.join(RETURN_MODES)}, got {self.mode!r}")
+        self.beam_divergence = _number(self.beam_divergence, "beam_divergence", low=0.0)
+        self.beam_samples = _count(self.beam_samples, "beam_samples")
+        self.range_resolution = _number(self.range_resolution, "range_resolution", positive=True)
+        v = self.visibility
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer, float, np.floating)):
+            raise TypeError(f"visibility must be a number, got {type(v).__name__}")
+        if not float(v) > 0:  # also rejects nan; inf is clear air
+            raise ValueError(f"visibility must be greater than 0 (inf for clear air), got {v!r}")
+        self.visibility = float(v)
+        self.false_return_rate = _number(self.false_return_rate, "false_return_rate", low=0.0, high=1.0)
+        self.false_return_range = _number(self.false_return_range, "false_return_range", positive=True)
+        self.false_return_intensity = _number(self.false_return_intensity, "false_return_intensity",
+                                              low=0.0, high=1.0)
+        for name in ("dropoff_general_rate", "dropoff_intensity_limit", "dropoff_zero_intensity"):
+            setattr(self, name, _number(getattr(self, name), name, low=0.0, high=1.0))
+        b = self.max_bounces
+        if isinstance(b, bool) or not isinstance(b, (int, np.integer, float, np.floating)):
+            raise TypeError(f"max_bounces must be a whole number, got {type(b).__name__}")
+        if not np.isfinite(b) or b < 0 or int(b) != b:
+            raise ValueError(f"max_bounces must be a whole number of at least 0, got {b!r}")
+        self.max_bounces = int(b)
 
 
 def measure(t, hit, cos_incidence, sensor, returns: Returns, frame: int = 0):
@@ -343,6 +399,28 @@ PRESETS = {
         "70.4 x 4.5 deg field of view in the repetitive scanning mode (the Avia as the GreenValley "
         "LiAir X3 User Guide, section 2.3.1, describes it); the 704 x 6 grid, the 1-100 m range and "
         "zero noise are this add-on's choices, not Livox figures"),
+    "PANDAR_XT16": Preset(
+        "Hesai PandarXT-16", "ROTATING",
+        {"channels": 16, "fov_up": 15.0, "fov_down": -15.0, "azimuth_steps": 2000, "rotation_rate": 10.0,
+         "range_min": 0.05, "range_max": 120.0},
+        0.0,
+        "16 channels at +15 to -15 deg in 2 deg steps (design values), instrument range 120 m: PandarXT-16 "
+        "User Manual, Appendix I (Channel Distribution); 600 RPM (10 Hz) default spin rate: section 4.2.2. "
+        "The 0.18 deg azimuth step (2,000 a turn, taken at 10 Hz) and the 0.05 m minimum range are TIER IV's "
+        "nebula driver's figures (class PandarXT16: peak_resolution_mdeg, min_range), not found in the manual "
+        "pages searched; no range accuracy was found, so noise is 0. Ring 0 is the lowest beam (Hesai's channel 16)"),
+    "RS_LIDAR_16": Preset(
+        "RoboSense RS-LiDAR-16", "ROTATING",
+        {"channels": 16, "fov_up": 15.0, "fov_down": -15.0, "azimuth_steps": 1800, "rotation_rate": 10.0,
+         "range_min": 0.4, "range_max": 150.0},
+        0.0,
+        "16 channels, 8 pitched down and 8 up (RS-LiDAR-16 User Manual, appendix B.7); range 150 m (its revision "
+        "history, rev. 3.3). The manual gives no design angles: the sample calibration file of RoboSense's "
+        "ros_rslidar driver (rslidar_pointcloud/data/angle.csv) has them within 0.04 deg of -15 to +15 deg in "
+        "2 deg steps, so they are spread evenly here. 1,800 azimuth steps at 600 RPM: rs_driver's guide "
+        "doc/howto/19_about_splitting_frame.md, section 19.2.1 (a firing round every 55.5 us, 0.2 deg); "
+        "range_min 0.4 m is rs_driver's RS16 decoder minimum (decoder_RS16.hpp); no range accuracy was found, "
+        "so noise is 0"),
 }
 #: the sensor an object has until the user changes it: a common rotating LiDAR, no noise
 DEFAULT_PRESET = "VLP16"

@@ -101,6 +101,22 @@ def test_every_preset_builds_and_cites_a_source():
     assert len(os1.pattern()) == 64 * 2048
 
 
+#: the channel count each rotating preset's description states
+PRESET_CHANNELS = {"VLP16": 16, "OS1_64": 64, "PANDAR_XT16": 16, "RS_LIDAR_16": 16}
+
+
+def test_every_rotating_preset_fires_the_channel_count_its_source_states():
+    rotating = {k for k, p in sensors.PRESETS.items() if p.kind == "ROTATING"}
+    assert rotating == set(PRESET_CHANNELS), f"add the new presets' channel counts: {rotating ^ set(PRESET_CHANNELS)}"
+    for key, n in PRESET_CHANNELS.items():
+        p = sensors.PRESETS[key]
+        s = p.sensor()
+        pat = s.pattern()
+        assert s.channels == n and len(np.unique(pat.ring)) == n, f"{key}: {s.channels} channels, want {n}"
+        assert len(pat) == n * s.azimuth_steps, key
+        assert str(n) in p.description, f"{key}: the description does not state {n} channels"
+
+
 # -- returns ------------------------------------------------------------------------------------
 
 def test_range_limits_drop_blind_zone_and_far_hits():
@@ -170,7 +186,8 @@ def test_ply_reads_back_with_plyfile_field_for_field(tmp_path):
 def test_las_reads_back_with_laspy(tmp_path):
     f = _fields()
     cls = np.array([2, 6, 1], np.uint8)[f["object_index"]]
-    pointcloud.write_las(tmp_path / "s.las", f, NAMES, cls)
+    f["classification"] = cls
+    pointcloud.write_las(tmp_path / "s.las", f, NAMES)
     las = laspy.read(str(tmp_path / "s.las"))
     assert (las.header.version.major, las.header.version.minor) == (1, 4) and las.header.point_format.id == 6
     assert las.header.point_count == len(f["points"])
@@ -204,7 +221,7 @@ def test_npz_holds_every_field_and_the_names(tmp_path):
     pointcloud.write_npz(tmp_path / "s.npz", f, NAMES)
     z = np.load(tmp_path / "s.npz")
     assert list(z["object_names"]) == NAMES
-    for k in pointcloud.FIELDS:
+    for k in f:
         assert np.array_equal(z[k], np.asarray(f[k]).astype(pointcloud.FIELDS[k][0])), k
 
 
