@@ -37,6 +37,12 @@ class CastResult:
         evaluated mesh's corner normals (NaN on a miss); else None
     uv: with ``uv=True``, (M, 2) float32 coordinates in the active UV map (NaN on a miss
         or without a UV map); else None
+    material_index: with ``materials=True``, (M,) int32 index into ``materials`` of the
+        material the hit triangle renders with (object-linked slots honoured per object;
+        ``operators.extract`` module doc), -1 on a miss or where it has none; else None
+    materials: with ``materials=True``, object array of the original ``bpy.types.Material``s
+        of the scene's triangles (no None; ``operators.materials.optics`` reads their LiDAR
+        parameters); material_names: their names; else None
     objects: object array of the hit-able original ``bpy.types.Object``s (an instanced
         object for collection/vertex/particle instances, the instancer for geometry-nodes
         instances, as ``scene.ray_cast`` reports them); object_names: their names
@@ -66,15 +72,22 @@ class CastResult:
     structure: str
     smooth_normals: np.ndarray | None = None
     uv: np.ndarray | None = None
+    material_index: np.ndarray | None = None
+    materials: np.ndarray | None = None
+    material_names: np.ndarray | None = None
     plan: object = field(repr=False, default=None)
 
     def __len__(self):
         return len(self.t)
 
     def as_dict(self) -> dict:
+        """The plain arrays (no bpy references); the material fields when they were asked."""
         keys = ("t", "hit", "points", "normals", "object_names", "object_index", "instance_index", "polygon_index",
                 "triangle", "u", "v", "structure")
-        return {k: getattr(self, k) for k in keys}
+        out = {k: getattr(self, k) for k in keys}
+        if self.material_index is not None:
+            out["material_index"], out["material_names"] = self.material_index, self.material_names
+        return out
 
 
 @dataclass
@@ -300,7 +313,7 @@ def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
 
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
          selected_only: bool = False, samples: int | None = None, structure: str = "auto",
-         smooth: bool = False, uv: bool = False, progress=None) -> CastResult:
+         smooth: bool = False, uv: bool = False, materials: bool = False, progress=None) -> CastResult:
     """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
 
     origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
@@ -312,11 +325,13 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     selected_only: only the selected objects.  samples: sample rays the plan times
         (default the scene's setting).  structure: 'auto', 'grid', 'bvh' or 'embree'.
     smooth, uv: also return interpolated corner normals / active-UV-map coordinates.
+    materials: also return each hit's material (``material_index``, ``materials``,
+        ``material_names``); the first such cast of a session reads the meshes' slots once.
     progress: called as progress(rays_done, rays_total) after each chunk.
     Raises TypeError/ValueError naming the argument for bad input, and the operators'
     NoGeometry / InvalidGeometry (``operators.jobs``) for a scene without usable triangles.
     """
-    attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ())
+    attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ()) + (("material",) if materials else ())
     call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
                  selected_only=selected_only, samples=samples, structure=structure, attributes=attributes)
     s, m = call.session, call.m
@@ -333,6 +348,12 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     poly = np.empty(m, np.int32)
     smooth_n = np.empty((m, 3), np.float32) if smooth else None
     uvs = np.empty((m, 2), np.float32) if uv else None
+    mat_index = mats = mat_names = None
+    if materials:
+        mats, tri_mat = s.material_tables()
+        mat_names = np.empty(len(mats), object)
+        mat_names[:] = [mt.name for mt in mats]  # read now: a rename is no geometry change
+        mat_index = np.empty(m, np.int32)
     kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
     tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
     for a, b in call.chunks(progress):
@@ -344,6 +365,8 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
         np.take(tri_ins, k, out=ins[a:b])
         np.take(tri_poly, k, out=poly[a:b])
         np.take(tri_normals, k, axis=0, out=normals[a:b])
+        if materials:
+            np.take(tri_mat, k, out=mat_index[a:b])
         tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
         np.multiply(tt[:, None], rays[1], out=points[a:b])
         points[a:b] += rays[0]
@@ -354,7 +377,8 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
             uvs[a:b] = uvk
     return CastResult(t=t, hit=tri >= 0, points=points, normals=normals, objects=objects, object_names=names,
                       object_index=obj, instance_index=ins, instance_matrices=inst.matrices, polygon_index=poly,
-                      triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs, plan=s.plan)
+                      triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs,
+                      material_index=mat_index, materials=mats, material_names=mat_names, plan=s.plan)
 
 
 def occluded(origins, directions, *, tmin=0.0, tmax=np.inf, depsgraph=None, expected_rays=None,

@@ -165,6 +165,7 @@ class Session:
     _normals: object = None
     _per_triangle: object = None
     _tables: object = None
+    _materials: object = None
 
     @property
     def triangle_normals(self) -> np.ndarray:
@@ -201,6 +202,18 @@ class Session:
             names[:] = [ob.name if ob is not None else "" for ob in obs]
             self._tables = objects, names
         return self._tables
+
+    def material_tables(self):
+        """(materials as an object array, per triangle the index into it with one more row,
+        -1, for a miss), from the extraction's 'material' attribute (``get`` with it)."""
+        if self._materials is None:
+            inst = self.mesh.instances
+            if inst.triangle_material is None:
+                raise RuntimeError("the session was extracted without 'material'")
+            mats = np.empty(len(inst.materials), object)
+            mats[:] = inst.materials
+            self._materials = mats, np.concatenate([inst.triangle_material, np.array([-1], np.int32)])
+        return self._materials
 
     @property
     def fingerprint(self):
@@ -298,7 +311,8 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     """The session of ``depsgraph`` (evaluated; see ``evaluated``), extracting again
     unless the stored one has the same fingerprint.  ``settings``: a
     ``scene.hybrid_raycast`` (default the depsgraph scene's) for selected-only.
-    ``attributes``: per-corner data the caller needs ('normal', 'uv'), read once.
+    ``attributes``: per-corner or per-triangle data the caller needs ('normal', 'uv',
+    'material'), read once.
     Nothing is stored when extraction fails."""
     check_depsgraph(depsgraph)
     selected_only, _ = _settings(depsgraph, settings, selected_only, None)
@@ -323,6 +337,9 @@ def _add_attributes(s: Session, depsgraph, selected_only, attributes):
         raise RuntimeError("the scene extracted differently with the same fingerprint")  # extraction is deterministic
     s.mesh.instances.corner_normals = mesh.instances.corner_normals
     s.mesh.instances.corner_uvs = mesh.instances.corner_uvs
+    s.mesh.instances.materials = mesh.instances.materials
+    s.mesh.instances.triangle_material = mesh.instances.triangle_material
+    s._materials = None
     s.attributes = frozenset(attributes)
 
 
