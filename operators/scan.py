@@ -31,13 +31,15 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from ..core import pointcloud, sensors
+from ..core import motion, pointcloud, returns, sensors
 from . import query, session
 from .jobs import BadInput, Job, JobOperator, Unwritable, writable_dir
 
 SPACES = ("WORLD", "SENSOR")
 #: the per-object custom property that sets the LAS classification of its points
 CLASSIFICATION_PROPERTY = "classification"
+#: the ASPRS class of a rain or fog return: 7, 'low point (noise)' (LAS 1.4 R15, table 17)
+NOISE_CLASS = 7
 
 
 # -- settings --------------------------------------------------------------------------------
@@ -104,6 +106,60 @@ class HybridRaycastSensor(bpy.types.PropertyGroup):
                                                "(intensity ~ cos(incidence) / range^2)")
     drop_below: FloatProperty(name="Drop Below", default=0.0, min=0.0, max=1.0,
                               description="Returns weaker than this intensity are dropped")
+    # time within a sweep
+    motion: EnumProperty(
+        name="Motion", default="FRAME",
+        items=(("FRAME", "Frame", "Every ray sees the scene and the sensor as they are at the frame"),
+               ("SWEEP", "Sweep", "Each block of firings sees the scene at its own time within the sweep "
+                                  "(1 / rotation rate), every ray from the sensor's pose at its firing time: "
+                                  "moving objects and the sensor's own motion skew the scan as a real one")))
+    sweep_tolerance: FloatProperty(name="Max Skew", default=0.01, min=1e-5, max=100.0, unit="LENGTH",
+                                   description="Sweep blocks are fine enough that no scene point moves more than "
+                                               "this within one block (half of it from the block's time)")
+    sweep_blocks: IntProperty(name="Blocks", default=0, min=0, max=4096,
+                              description="A fixed number of sweep blocks (0: as many as Max Skew needs, at most 256)")
+    # returns
+    returns: EnumProperty(
+        name="Returns", default="STRONGEST",
+        items=(("STRONGEST", "Strongest", "One return per beam: the strongest echo"),
+               ("FIRST", "First", "One return per beam: the nearest echo"),
+               ("LAST", "Last", "One return per beam: the farthest echo"),
+               ("DUAL", "Dual", "Up to two returns per beam: the strongest and the last")))
+    beam_divergence: FloatProperty(name="Beam Divergence", default=0.0, min=0.0, max=100.0, precision=3,
+                                   description="Full cone angle of one beam (milliradians): its footprint can "
+                                               "split over an edge into several returns")
+    beam_samples: IntProperty(name="Beam Samples", default=1, min=1, max=64,
+                              description="Sub-rays traced over each beam's cone (1: the beam's axis only)")
+    range_resolution: FloatProperty(name="Range Resolution", default=0.1, min=0.001, max=100.0, unit="LENGTH",
+                                    description="Echoes of one beam closer than this merge into one return")
+    use_materials: BoolProperty(name="Materials", default=True,
+                                description="Reflectivity from the hit material (Principled BSDF base colour, or "
+                                            "a 'hybrid_raycast_reflectivity' property on the material or object); "
+                                            "transmissive surfaces pass light on, mirror-like ones reflect it")
+    max_bounces: IntProperty(name="Mirror Bounces", default=0, min=0, max=8,
+                             description="Reflections off mirror-like surfaces (metallic, smooth) followed per ray")
+    # weather and dropout
+    use_atmosphere: BoolProperty(name="Atmosphere", default=False,
+                                 description="Attenuate intensity by exp(-2 alpha range), alpha = 3.912 / visibility")
+    visibility: FloatProperty(name="Visibility", default=1000.0, min=0.01, soft_max=50000.0, unit="LENGTH",
+                              description="Meteorological visibility (fog: under 1 km)")
+    false_return_rate: FloatProperty(name="Rain/Fog Returns", default=0.0, min=0.0, max=1.0, subtype="FACTOR",
+                                     description="Share of beams, per frame, that return from a rain drop or fog "
+                                                 "near the sensor instead")
+    false_return_range: FloatProperty(name="Clutter Range", default=5.0, min=0.01, max=1000.0, unit="LENGTH",
+                                      description="Rain and fog returns fall between Range Min and this range")
+    false_return_intensity: FloatProperty(name="Clutter Intensity", default=0.05, min=0.0, max=1.0, subtype="FACTOR",
+                                          description="Intensity of a rain or fog return")
+    dropoff_general_rate: FloatProperty(name="Dropout", default=0.0, min=0.0, max=1.0, subtype="FACTOR",
+                                        description="Share of points lost at random (CARLA's dropoff_general_rate)")
+    dropoff_intensity_limit: FloatProperty(name="Dropout Intensity Limit", default=1.0, min=0.0, max=1.0,
+                                           subtype="FACTOR",
+                                           description="Points above this intensity are never lost to the "
+                                                       "intensity rule (CARLA's dropoff_intensity_limit)")
+    dropoff_zero_intensity: FloatProperty(name="Dropout at Zero Intensity", default=0.0, min=0.0, max=1.0,
+                                          subtype="FACTOR",
+                                          description="Chance to lose a point of zero intensity, falling linearly to "
+                                                      "0 at the limit (CARLA's dropoff_zero_intensity)")
     # output
     directory: StringProperty(name="Folder", default="//scans/", subtype="DIR_PATH",
                               description="Where the Scan button writes one file per frame")
@@ -155,8 +211,44 @@ def sensor_model(ob, scene=None):
         k = sensors.camera_intrinsics(cam.lens, cam.sensor_width, cam.sensor_height, cam.sensor_fit,
                                       s.width, s.height, cam.shift_x, cam.shift_y)
         model = sensors.DepthCamera(**k, **common)
-    return model, sensors.Returns(noise_sigma=s.noise_sigma, seed=s.seed, reference_range=s.reference_range,
-                                  drop_below=s.drop_below)
+    return model, sensors.Returns(
+        noise_sigma=s.noise_sigma, seed=s.seed, reference_range=s.reference_range, drop_below=s.drop_below,
+        mode=s.returns, beam_divergence=s.beam_divergence, beam_samples=s.beam_samples,
+        range_resolution=s.range_resolution, visibility=s.visibility if s.use_atmosphere else float("inf"),
+        false_return_rate=s.false_return_rate, false_return_range=s.false_return_range,
+        false_return_intensity=s.false_return_intensity, dropoff_general_rate=s.dropoff_general_rate,
+        dropoff_intensity_limit=s.dropoff_intensity_limit, dropoff_zero_intensity=s.dropoff_zero_intensity,
+        max_bounces=s.max_bounces)
+
+
+@dataclass
+class SensorSettings:
+    """Everything one scan from an object needs, checked: the model of its rays, what a
+    return is (``core.sensors.Returns``), time within the sweep (``core.motion.Sweep``) and
+    whether the materials hit set reflectivity, transmission and mirrors."""
+
+    model: object
+    returns: sensors.Returns
+    sweep: motion.Sweep
+    materials: bool = True
+
+
+def sensor_settings(ob, scene=None) -> SensorSettings:
+    """The object's ``hybrid_raycast_sensor`` as ``SensorSettings``; ValueError naming the
+    setting when they make no sensor."""
+    model, returns = sensor_model(ob, scene)
+    s = ob.hybrid_raycast_sensor
+    sweep = motion.Sweep(motion=s.motion, tolerance=s.sweep_tolerance, blocks=s.sweep_blocks)
+    return SensorSettings(model, returns, sweep, bool(s.use_materials))
+
+
+def _settings(value, ob, scene) -> SensorSettings:
+    if value is None:
+        return sensor_settings(ob, scene)
+    if isinstance(value, SensorSettings):
+        return value
+    model, returns = value  # the (model, Returns) pair of ``sensor_model``
+    return SensorSettings(model, returns, motion.Sweep(), False)
 
 
 # -- one frame ----------------------------------------------------------------------------------
@@ -165,15 +257,24 @@ def sensor_model(ob, scene=None):
 class ScanResult:
     """One frame's returns, per point (N,) unless said otherwise.
 
-    points: (N, 3) float64 (world or sensor frame, as ``space``); normals: (N, 3) float32
-    unit geometric normals of the surfaces hit, in the same frame; range: float64 measured
-    range (m, with noise); intensity: float32 in [0, 1]; ring: int32 channel / row;
-    azimuth: float32 degrees; time: float64 seconds (the frame's scene time from the
-    scene's first frame, plus the ray's firing time in the sweep); objects / object_names
-    and object_index; instance_index into instance_matrices ((I, 4, 4) world).
-    ray: int64 index of each point's ray in the frame's pattern (``sensor_model(ob)[0].pattern()``);
-    sensor_matrix: (4, 4) the sensor's world pose (rotation and translation, no scale);
-    rays: rays cast; frame; space.
+    points: (N, 3) float64 (world or sensor frame, as ``space``; with SWEEP motion a point
+    in the sensor frame is in the sensor's pose at its own firing time); normals: (N, 3)
+    float32 unit geometric normals of the surfaces hit, in the same frame (NaN for a
+    weather return); range: float64 measured range (m, with noise); intensity: float32 in
+    [0, 1]; cos_incidence: float32 |cos| of the angle between beam and surface normal;
+    ring: int32 channel / row; azimuth: float32 degrees; time: float64 seconds (the frame's
+    scene time from the scene's first frame, plus the ray's firing time in the sweep);
+    return_index: uint8, 1-based rank by range among the returns of its beam, and
+    return_count: uint8 how many its beam reported (``returns`` mode DUAL gives up to 2);
+    objects / object_names and object_index (-1 for a rain or fog return);
+    instance_index into instance_matrices ((I, 4, 4) world; with SWEEP motion each block's
+    instances, at its time); materials / material_names and material_index (-1: none);
+    classification: uint8 ASPRS class (the object's ``classification`` property, 1 when
+    unset, 7 'low point (noise)' for a rain or fog return).
+    ray: int64 index of each point's beam in the frame's pattern (``sensor_model(ob)[0].pattern()``);
+    sensor_matrix: (4, 4) the sensor's world pose at the start of the sweep (rotation and
+    translation, no scale); rays: rays cast (sub-rays of every beam, and the rays that
+    went on through glass or off mirrors); frame; space; blocks: the sweep's blocks (1 for FRAME).
     """
 
     points: np.ndarray
@@ -194,6 +295,14 @@ class ScanResult:
     frame: int
     space: str
     structure: str = ""
+    cos_incidence: np.ndarray | None = None
+    return_index: np.ndarray | None = None
+    return_count: np.ndarray | None = None
+    material_index: np.ndarray | None = None
+    materials: np.ndarray | None = None
+    material_names: np.ndarray | None = None
+    classification: np.ndarray | None = None
+    blocks: int = 1
     extra: dict = field(default_factory=dict, repr=False)
 
     def __len__(self):
@@ -222,33 +331,314 @@ def _frame_time(scene, frame):
     return (frame - scene.frame_start) / fps
 
 
-def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -> ScanResult:
-    """One scan of the depsgraph's scene as it is evaluated now; ``structure`` as ``api.cast``."""
+def sweep_duration(model) -> float:
+    """Seconds one sweep (one frame of the sensor) lasts: a turn, a solid-state frame, 0 for a
+    depth camera (every pixel at once)."""
+    rate = getattr(model, "rotation_rate", None) or getattr(model, "frame_rate", None)
+    return 1.0 / rate if rate else 0.0
+
+
+#: how far past a surface a ray that goes on through it starts (metres, plus this share of
+#: the distance travelled): beyond the float32 rounding of a hit point, short of any real gap
+PASS_EPSILON = 1e-4
+PASS_RELATIVE = 1e-6
+#: surfaces one sub-ray goes on through (glass), at most
+MAX_PASSES = 3
+#: the share of a mirror's reflectivity it returns diffusely to the sensor; the rest goes on
+#: along the reflected ray (this add-on's approximation, not a measured BRDF)
+MIRROR_DIFFUSE = 0.05
+
+
+@dataclass
+class _Echoes:
+    """Every surface the sub-rays met, in one evaluated state of the scene (one block)."""
+
+    ray: np.ndarray            # (E,) sub-ray index (global: beam * samples + sample)
+    range: np.ndarray          # (E,) path length from the sensor
+    cos: np.ndarray            # (E,) |cos incidence| at the surface
+    reflectivity: np.ndarray   # (E,) diffuse reflectivity sent back
+    factor: np.ndarray         # (E,) share of the sub-ray's power reaching the surface
+    normals: np.ndarray        # (E, 3) float32 world normals
+    object_names: list         # the block's object table (names), objects, instance matrices, materials
+    objects: list
+    object_index: np.ndarray
+    instance_index: np.ndarray
+    instance_matrices: np.ndarray
+    material_index: np.ndarray
+    materials: list
+    rays: int
+    structure: str
+
+
+def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure):
+    """Trace sub-rays ``dirs`` (unit) from ``origins`` in ``dg``: the first surface of each,
+    then on through transmissive surfaces (up to ``MAX_PASSES``) and off mirror-like ones
+    (up to ``returns.max_bounces``), all rays of one generation in one cast."""
+    model, phys = settings.model, settings.returns
+    cols = {k: [] for k in ("ray", "range", "cos", "reflectivity", "factor", "normals", "object_index",
+                            "instance_index", "material_index")}
+    idx, o, d = ray_ids, origins, dirs
+    offset = np.zeros(len(idx))
+    factor = np.ones(len(idx))
+    passes = np.zeros(len(idx), np.int32)
+    bounces = np.zeros(len(idx), np.int32)
+    tmin = np.zeros(len(idx))
+    tables = None
+    rays = 0
+    used = structure
+    op = None
+    while len(idx):
+        r = query.cast(o, d, depsgraph=dg, tmin=tmin, tmax=np.maximum(model.range_max - offset, tmin),
+                       structure=used, expected_rays=max(1, len(idx)),
+                       **({"materials": True} if settings.materials else {}))
+        rays += len(idx)
+        used = r.structure
+        if tables is None:
+            tables = r
+            if settings.materials:
+                from .materials import optics
+
+                op = optics(list(r.materials), list(r.objects))
+        h = np.flatnonzero(r.hit)
+        if not len(h):
+            break
+        t = r.t[h].astype(np.float64)
+        n = r.normals[h]
+        cos = np.abs(np.einsum("ij,ij->i", n.astype(np.float64), d[h]))
+        if op is not None:
+            refl, trans, mirror = op.per_hit(r.material_index[h], r.object_index[h])
+            refl, trans = np.asarray(refl, np.float64), np.asarray(trans, np.float64)
+            mirror = np.asarray(mirror, bool) & (bounces[h] < phys.max_bounces)
+        else:
+            refl, trans, mirror = np.ones(len(h)), np.zeros(len(h)), np.zeros(len(h), bool)
+        own = np.where(mirror, refl * MIRROR_DIFFUSE, refl * (1.0 - trans))
+        cols["ray"].append(idx[h])
+        cols["range"].append(offset[h] + t)
+        cols["cos"].append(cos)
+        cols["reflectivity"].append(own)
+        cols["factor"].append(factor[h])
+        cols["normals"].append(n)
+        cols["object_index"].append(r.object_index[h])
+        cols["instance_index"].append(r.instance_index[h])
+        cols["material_index"].append(r.material_index[h] if r.material_index is not None
+                                      else np.full(len(h), -1, np.int32))
+        # the next generation: on through glass, off mirrors
+        p = o[h] + t[:, None] * d[h]
+        on = (~mirror) & (trans > 0) & (passes[h] < MAX_PASSES)
+        nd = d[h].copy()
+        refl_d = d[h] - 2.0 * np.einsum("ij,ij->i", d[h], n.astype(np.float64))[:, None] * n
+        nd[mirror] = refl_d[mirror] / np.linalg.norm(refl_d[mirror], axis=1, keepdims=True)
+        nxt = on | mirror
+        nf = factor[h] * np.where(mirror, refl * (1.0 - MIRROR_DIFFUSE), trans)
+        nxt &= nf > 0
+        g = np.flatnonzero(nxt)
+        dist = offset[h] + t
+        idx, o, d = idx[h][g], p[g], nd[g]
+        offset, factor = dist[g], nf[g]
+        passes = passes[h][g] + on[g]
+        bounces = bounces[h][g] + mirror[g]
+        tmin = PASS_EPSILON + PASS_RELATIVE * offset
+        keep = model.range_max - offset > tmin
+        idx, o, d, offset, factor, passes, bounces, tmin = (a[keep] for a in
+                                                             (idx, o, d, offset, factor, passes, bounces, tmin))
+    cat = {k: (np.concatenate(v) if v else None) for k, v in cols.items()}
+    if cat["ray"] is None:
+        cat = {"ray": np.zeros(0, np.int64), "range": np.zeros(0), "cos": np.zeros(0), "reflectivity": np.zeros(0),
+               "factor": np.zeros(0), "normals": np.zeros((0, 3), np.float32),
+               "object_index": np.zeros(0, np.int32), "instance_index": np.zeros(0, np.int32),
+               "material_index": np.zeros(0, np.int32)}
+    return _Echoes(ray=cat["ray"].astype(np.int64), range=cat["range"], cos=np.clip(cat["cos"], 0.0, 1.0),
+                   reflectivity=np.clip(cat["reflectivity"], 0.0, 1.0), factor=np.clip(cat["factor"], 0.0, 1.0),
+                   normals=cat["normals"], object_names=list(tables.object_names), objects=list(tables.objects),
+                   object_index=cat["object_index"], instance_index=cat["instance_index"],
+                   instance_matrices=tables.instance_matrices, material_index=cat["material_index"],
+                   materials=list(tables.materials) if tables.materials is not None else [], rays=rays,
+                   structure=used)
+
+
+def _merge(blocks: list[_Echoes]):
+    """One table of objects, instances and materials over the blocks of a sweep (by name:
+    each block is its own extraction), and every echo re-indexed into it."""
+    if len(blocks) == 1:
+        b = blocks[0]
+        return b, b.objects, b.object_names, b.instance_matrices, b.materials
+    names, objects, where = [], [], {}
+    mats, mat_where = [], {}
+    inst, cols = [], {k: [] for k in ("ray", "range", "cos", "reflectivity", "factor", "normals", "object_index",
+                                      "instance_index", "material_index")}
+    base = 0
+    for b in blocks:
+        remap = np.empty(len(b.object_names) + 1, np.int32)
+        for i, (nm, ob) in enumerate(zip(b.object_names, b.objects)):
+            if nm not in where:
+                where[nm] = len(names)
+                names.append(nm)
+                objects.append(ob)
+            remap[i] = where[nm]
+        remap[-1] = -1
+        mremap = np.empty(len(b.materials) + 1, np.int32)
+        for i, m in enumerate(b.materials):
+            key = m.name if m is not None else ""
+            if key not in mat_where:
+                mat_where[key] = len(mats)
+                mats.append(m)
+            mremap[i] = mat_where[key]
+        mremap[-1] = -1
+        for k in cols:
+            cols[k].append(getattr(b, k))
+        cols["object_index"][-1] = remap[b.object_index]
+        cols["material_index"][-1] = mremap[b.material_index]
+        cols["instance_index"][-1] = np.where(b.instance_index >= 0, b.instance_index + base, -1).astype(np.int32)
+        inst.append(b.instance_matrices)
+        base += len(b.instance_matrices)
+    merged = _Echoes(**{k: np.concatenate(v) for k, v in cols.items()}, object_names=names, objects=objects,
+                     instance_matrices=np.concatenate(inst) if inst else np.zeros((0, 4, 4)), materials=mats,
+                     rays=sum(b.rays for b in blocks), structure=blocks[-1].structure)
+    return merged, objects, names, merged.instance_matrices, mats
+
+
+def _evaluate_at(scene, view_layer, frame: int, seconds: float):
+    """The scene evaluated ``seconds`` after the start of ``frame``."""
+    fps = scene.render.fps / scene.render.fps_base
+    f = frame + seconds * fps
+    whole = int(np.floor(f))
+    scene.frame_set(whole, subframe=float(f - whole))
+    return session.evaluated(scene, view_layer)
+
+
+def _static_but(a_body, b_body, sensor_ptr) -> bool:
+    """Whether two fingerprint bodies differ at most in the sensor's own entry (an object
+    that brings no triangles: its matrix moves no surface)."""
+    if len(a_body) != len(b_body) or a_body[0] != b_body[0]:
+        return False
+    return all(x == y or (x[0] == sensor_ptr and y[0] == sensor_ptr) for x, y in zip(a_body[1:], b_body[1:]))
+
+
+def _brings_no_triangles(ob) -> bool:
+    return ob.type in ("EMPTY", "CAMERA", "LIGHT") and ob.instance_type == "NONE"
+
+
+def _world_vertices(dg):
+    """World-space vertices of the evaluated scene (the session's extraction), or None."""
+    try:
+        return session.get(dg).mesh.vertices
+    except (session.NoGeometry, session.InvalidGeometry):
+        return None
+
+
+def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", settings=None,
+               structure="auto") -> ScanResult:
+    """One frame's scan from ``ob`` of the scene as evaluated now (its current frame).
+
+    FRAME motion: every ray against the scene and the sensor pose of the frame.  SWEEP: the
+    rays are cut into blocks of consecutive firing times (``core.motion``); each block is
+    traced against the scene evaluated at its middle time, every ray from the sensor pose
+    at its own firing time (interpolated between evaluated poses).  The scene is left at a
+    time within the sweep: callers restore the frame.  ``structure`` as ``api.cast``; the
+    first block's choice serves the later ones.
+    """
     if space not in SPACES:
         raise ValueError(f"space must be 'WORLD' or 'SENSOR', got {space!r}")
-    scene = depsgraph.scene
-    model, returns = model if model is not None else sensor_model(ob, scene)
-    pose = sensor_pose(ob.evaluated_get(depsgraph))
-    origin, rot = pose[:3, 3], pose[:3, :3]
-    pat = model.pattern()
-    d = pat.directions @ rot.T
-    r = query.cast(origin, d, depsgraph=depsgraph, tmax=model.range_max, structure=structure)
+    settings = _settings(settings, ob, scene)
+    model, phys, sweep = settings.model, settings.returns, settings.sweep
+    vl = view_layer if view_layer is not None else (depsgraph.view_layer if depsgraph is not None else None)
     frame = scene.frame_current
-    with np.errstate(invalid="ignore"):
-        cos = np.abs(np.einsum("ij,ij->i", r.normals.astype(np.float64), d))
-    keep, rng, intensity = sensors.measure(r.t, r.hit, cos, model, returns, frame=frame)
-    k = np.flatnonzero(keep)
-    dk = d[k]
-    points = origin + rng[k, None] * dk
-    normals = r.normals[k]
+    pat = model.pattern()
+    n_beams = len(pat)
+    sub, weights = returns.beam_directions(pat.directions, phys.beam_divergence, phys.beam_samples)
+    samples = len(weights)
+    duration = sweep_duration(model)
+    dg = depsgraph if depsgraph is not None else session.evaluated(scene, vl)
+    pose0 = sensor_pose(ob.evaluated_get(dg))
+    pose_times, poses = [0.0], [pose0]
+    if sweep.motion == "FRAME" or duration <= 0:
+        plan = [(np.arange(n_beams), None)]  # None: the depsgraph as it is
+    else:
+        body0 = session.fingerprint(dg)[1]
+        dg_end = _evaluate_at(scene, vl, frame, duration)
+        pose_times.append(duration)
+        poses.append(sensor_pose(ob.evaluated_get(dg_end)))
+        cap = min(sweep.max_blocks, len(np.unique(pat.time)))
+        if _brings_no_triangles(ob) and _static_but(body0, session.fingerprint(dg_end)[1], ob.original.as_pointer()):
+            n_blocks = 1  # nothing but the sensor moves: one block, every ray from its own pose
+        elif sweep.blocks:
+            n_blocks = min(sweep.blocks, cap)
+        else:
+            verts_end = _world_vertices(dg_end)
+            verts_end = None if verts_end is None else verts_end.copy()
+            verts0 = _world_vertices(_evaluate_at(scene, vl, frame, 0.0))
+            if verts0 is not None and verts_end is not None and verts0.shape == verts_end.shape:
+                disp = float(np.sqrt(((verts_end.astype(np.float64) - verts0) ** 2).sum(axis=1).max(initial=0.0)))
+            else:  # the topology changed within the sweep: as many blocks as allowed
+                disp = np.inf
+            n_blocks = motion.blocks_for(disp, sweep.tolerance, cap)
+        if n_blocks == 1:
+            plan = [(np.arange(n_beams), 0.0)]
+        else:
+            block_of, mids = motion.sweep_blocks(pat.time, duration, n_blocks)
+            plan = [(np.flatnonzero(block_of == b), float(mids[b])) for b in range(n_blocks)]
+            plan = [(m, at) for m, at in plan if len(m)]
+    echoes, beam_poses = [], np.empty((n_beams, 4, 4))
+    used = structure
+    for members, at in plan:
+        dgb = dg
+        if at is not None:
+            dgb = _evaluate_at(scene, vl, frame, at)
+            if at not in pose_times:
+                i = int(np.searchsorted(pose_times, at))
+                pose_times.insert(i, at)
+                poses.insert(i, sensor_pose(ob.evaluated_get(dgb)))
+        # every beam from the sensor's pose at its own firing time (motion.interpolate_poses)
+        bp = motion.interpolate_poses(pose_times, np.stack(poses), pat.time[members])
+        beam_poses[members] = bp
+        ids = (members[:, None] * samples + np.arange(samples)[None, :]).reshape(-1)
+        o = np.repeat(bp[:, :3, 3], samples, axis=0)
+        d = np.einsum("mij,mj->mi", np.repeat(bp[:, :3, :3], samples, axis=0), sub[ids])
+        e = _cast_echoes(dgb, ids, o, d, settings, used)
+        used = e.structure
+        echoes.append(e)
+    merged, objects, names, inst_m, mats = _merge(echoes)
+    meas = returns.measure_returns(merged.ray, merged.range, merged.cos, merged.reflectivity, merged.factor,
+                                   beams=n_beams, samples=samples, weights=weights, sensor=model, returns=phys,
+                                   frame=frame)
+    beam, echo = meas.beam, meas.echo
+    real = echo >= 0
+    er = np.where(real, echo, 0)
+    sub_of = np.where(real, merged.ray[er] if len(merged.ray) else 0, beam * samples)
+    bp = beam_poses[beam]
+    origin = bp[:, :3, 3]
+    dirs = np.einsum("mij,mj->mi", bp[:, :3, :3], sub[sub_of])
+    points = origin + meas.range[:, None] * dirs
+    nan3 = np.full((len(beam), 3), np.nan, np.float32)
+    normals = np.where(real[:, None], merged.normals[er] if len(merged.normals) else nan3, nan3).astype(np.float32)
+    obj = np.where(real, merged.object_index[er] if len(merged.object_index) else -1, -1).astype(np.int32)
+    inst = np.where(real, merged.instance_index[er] if len(merged.instance_index) else -1, -1).astype(np.int32)
+    mat = np.where(real, merged.material_index[er] if len(merged.material_index) else -1, -1).astype(np.int32)
+    cos = np.where(real, merged.cos[er] if len(merged.cos) else np.nan, np.nan).astype(np.float32)
+    table = classification(objects)
+    cls = np.where(obj >= 0, table[np.maximum(obj, 0)] if len(table) else 1, NOISE_CLASS).astype(np.uint8)
     if space == "SENSOR":
-        points = (points - origin) @ rot
-        normals = (normals.astype(np.float64) @ rot).astype(np.float32)
-    return ScanResult(points=points, normals=normals, range=rng[k], intensity=intensity[k], ring=pat.ring[k],
-                      azimuth=pat.azimuth[k], time=_frame_time(scene, frame) + pat.time[k],
-                      object_index=r.object_index[k], objects=r.objects, object_names=r.object_names,
-                      instance_index=r.instance_index[k], instance_matrices=r.instance_matrices, ray=k, sensor_matrix=pose,
-                      rays=len(d), frame=frame, space=space, structure=r.structure)
+        rt = bp[:, :3, :3]
+        points = np.einsum("mji,mj->mi", rt, points - origin)
+        normals = np.einsum("mji,mj->mi", rt, normals.astype(np.float64)).astype(np.float32)
+    obj_arr, name_arr = np.empty(len(objects), object), np.empty(len(names), object)
+    obj_arr[:], name_arr[:] = objects, names
+    mat_arr, mat_names = np.empty(len(mats), object), np.empty(len(mats), object)
+    mat_arr[:] = mats
+    mat_names[:] = [m.name if m is not None else "" for m in mats]
+    return ScanResult(points=points, normals=normals, range=meas.range, intensity=meas.intensity,
+                      ring=pat.ring[beam], azimuth=pat.azimuth[beam], time=_frame_time(scene, frame) + pat.time[beam],
+                      object_index=obj, objects=obj_arr, object_names=name_arr, instance_index=inst,
+                      instance_matrices=inst_m, ray=beam.astype(np.int64), sensor_matrix=pose0,
+                      rays=merged.rays, frame=frame, space=space, structure=used, cos_incidence=cos,
+                      return_index=meas.return_index, return_count=meas.return_count, material_index=mat,
+                      materials=mat_arr, material_names=mat_names, classification=cls, blocks=len(plan))
+
+
+def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -> ScanResult:
+    """One scan of the depsgraph's scene as it is evaluated now; ``structure`` as ``api.cast``.
+    ``model``: a ``SensorSettings`` or a ``sensor_model`` pair (default the object's settings)."""
+    return scan_frame(ob, depsgraph.scene, depsgraph=depsgraph, space=space, settings=model, structure=structure)
 
 
 def _whole(x, name):
@@ -265,6 +655,7 @@ def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None, structure=
     default the current one.  space: 'WORLD' or 'SENSOR' (the object's frame, no scale).
     depsgraph: an evaluated depsgraph (default the context's).
     structure: 'auto' (the session's plan), 'grid', 'bvh' or 'embree', as ``api.cast``.
+    With SWEEP motion the scene is evaluated at times within the sweep and put back.
     Raises TypeError/ValueError naming the argument or the setting for bad input.
     """
     if not isinstance(sensor_object, bpy.types.Object):
@@ -274,16 +665,20 @@ def scan(sensor_object, *, frame=None, space="WORLD", depsgraph=None, structure=
     if depsgraph is not None:
         session.check_depsgraph(depsgraph)
     scene = depsgraph.scene if depsgraph is not None else bpy.context.scene
-    model = sensor_model(sensor_object, scene)
-    if frame is None:
+    settings = sensor_settings(sensor_object, scene)
+    if frame is None and settings.sweep.motion == "FRAME":
         dg = depsgraph if depsgraph is not None else bpy.context.evaluated_depsgraph_get()
-        return scan_depsgraph(sensor_object, dg, space, model, structure)
-    frame = _whole(frame, "frame")
+        return scan_frame(sensor_object, scene, depsgraph=dg, space=space, settings=settings, structure=structure)
+    frame = scene.frame_current if frame is None else _whole(frame, "frame")
     old = (scene.frame_current, scene.frame_subframe)
-    scene.frame_set(frame)
+    view_layer = depsgraph.view_layer if depsgraph is not None else None
     try:
-        dg = depsgraph if depsgraph is not None else session.evaluated(scene)
-        return scan_depsgraph(sensor_object, dg, space, model, structure)
+        if (scene.frame_current, scene.frame_subframe) != (frame, 0.0):
+            scene.frame_set(frame)
+        dg = depsgraph if depsgraph is not None and settings.sweep.motion == "FRAME" else \
+            session.evaluated(scene, view_layer)
+        return scan_frame(sensor_object, scene, view_layer=view_layer, depsgraph=dg, space=space,
+                          settings=settings, structure=structure)
     finally:
         if (scene.frame_current, scene.frame_subframe) != old:
             scene.frame_set(old[0], subframe=old[1])
@@ -306,12 +701,12 @@ def classification(objects) -> np.ndarray:
 
 
 def write_scan(result: ScanResult, path, fmt: str) -> Path:
-    fmt = fmt.lower()
-    cls = None
-    if fmt == "las":
+    f = result.fields()
+    if f.get("classification") is None:  # a ScanResult made without one: the objects' property
         table = classification(result.objects)
-        cls = table[result.object_index] if len(table) else np.ones(len(result), np.uint8)
-    return pointcloud.write(path, fmt, result.fields(), list(result.object_names), cls)
+        f["classification"] = table[result.object_index] if len(table) else np.ones(len(result), np.uint8)
+    names = () if result.material_names is None else [str(x) for x in result.material_names]
+    return pointcloud.write(path, fmt.lower(), f, list(result.object_names), material_names=names)
 
 
 def parse_frames(text: str) -> tuple[int, int]:
@@ -370,7 +765,7 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     if space not in SPACES:
         raise BadInput(f"bad arguments: space must be 'WORLD' or 'SENSOR', got {space!r}")
     try:
-        model = sensor_model(ob, scene)
+        settings = sensor_settings(ob, scene)
         start, end = frames
         check_frames(scene, start, end)
     except (TypeError, ValueError) as e:
@@ -389,7 +784,8 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
             job.check()
             scene.frame_set(frame)
             dg = session.evaluated(scene, view_layer)
-            result = scan_depsgraph(ob, dg, space, model, structure)
+            result = scan_frame(ob, scene, view_layer=view_layer, depsgraph=dg, space=space, settings=settings,
+                                structure=structure)
             structure = result.structure
             try:
                 written.append(write_scan(result, folder / file_name(ob, frame, fmt), fmt))
