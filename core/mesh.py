@@ -118,7 +118,10 @@ class TriangleMesh:
                 self._bounds = (np.zeros(3, np.float32), np.zeros(3, np.float32))
             else:
                 used = self.tri_vertices.reshape(-1, 3)
-                self._bounds = (used.min(axis=0), used.max(axis=0))
+                # one strided pass per column: numpy's axis-0 reduction over 3 columns runs
+                # its inner loop 3 wide, an order of magnitude slower (BENCHMARKS.md, "Scans")
+                self._bounds = (np.array([used[:, k].min() for k in range(3)], np.float32),
+                                np.array([used[:, k].max() for k in range(3)], np.float32))
         return self._bounds[0].copy(), self._bounds[1].copy()
 
     def areas(self) -> np.ndarray:

@@ -378,17 +378,15 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
     cols = {k: [] for k in ("ray", "range", "cos", "reflectivity", "factor", "normals", "object_index",
                             "instance_index", "material_index")}
     idx, o, d = ray_ids, origins, dirs
-    offset = np.zeros(len(idx))
-    factor = np.ones(len(idx))
-    passes = np.zeros(len(idx), np.int32)
-    bounces = np.zeros(len(idx), np.int32)
-    tmin = np.zeros(len(idx))
+    offset = factor = passes = bounces = None  # the first generation: 0, 1, 0, 0 for every ray
     tables = None
     rays = 0
     used = structure
     op = None
     while len(idx):
-        r = query.cast(o, d, depsgraph=dg, tmin=tmin, tmax=np.maximum(model.range_max - offset, tmin),
+        first = offset is None
+        r = query.cast(o, d, depsgraph=dg, tmin=0.0 if first else tmin,
+                       tmax=model.range_max if first else model.range_max - offset,
                        structure=used, expected_rays=max(1, len(idx)),
                        **({"materials": True} if settings.materials else {}))
         rays += len(idx)
@@ -404,43 +402,44 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
             break
         t = r.t[h].astype(np.float64)
         n = r.normals[h]
-        cos = np.abs(np.einsum("ij,ij->i", n.astype(np.float64), d[h]))
+        dh = d[h]
+        cos = np.abs(np.einsum("ij,ij->i", n, dh))
         if op is not None:
             refl, trans, mirror = op.per_hit(r.material_index[h], r.object_index[h])
             refl, trans = np.asarray(refl, np.float64), np.asarray(trans, np.float64)
-            mirror = np.asarray(mirror, bool) & (bounces[h] < phys.max_bounces)
+            mirror = np.asarray(mirror, bool) & ((bounces[h] if not first else 0) < phys.max_bounces)
         else:
             refl, trans, mirror = np.ones(len(h)), np.zeros(len(h)), np.zeros(len(h), bool)
-        own = np.where(mirror, refl * MIRROR_DIFFUSE, refl * (1.0 - trans))
+        dist = t if first else offset[h] + t
+        fh = np.ones(len(h)) if first else factor[h]
         cols["ray"].append(idx[h])
-        cols["range"].append(offset[h] + t)
+        cols["range"].append(dist)
         cols["cos"].append(cos)
-        cols["reflectivity"].append(own)
-        cols["factor"].append(factor[h])
+        cols["reflectivity"].append(np.where(mirror, refl * MIRROR_DIFFUSE, refl * (1.0 - trans)))
+        cols["factor"].append(fh)
         cols["normals"].append(n)
         cols["object_index"].append(r.object_index[h])
         cols["instance_index"].append(r.instance_index[h])
         cols["material_index"].append(r.material_index[h] if r.material_index is not None
                                       else np.full(len(h), -1, np.int32))
         # the next generation: on through glass, off mirrors
-        p = o[h] + t[:, None] * d[h]
-        on = (~mirror) & (trans > 0) & (passes[h] < MAX_PASSES)
-        nd = d[h].copy()
-        refl_d = d[h] - 2.0 * np.einsum("ij,ij->i", d[h], n.astype(np.float64))[:, None] * n
-        nd[mirror] = refl_d[mirror] / np.linalg.norm(refl_d[mirror], axis=1, keepdims=True)
-        nxt = on | mirror
-        nf = factor[h] * np.where(mirror, refl * (1.0 - MIRROR_DIFFUSE), trans)
-        nxt &= nf > 0
-        g = np.flatnonzero(nxt)
-        dist = offset[h] + t
-        idx, o, d = idx[h][g], p[g], nd[g]
-        offset, factor = dist[g], nf[g]
-        passes = passes[h][g] + on[g]
-        bounces = bounces[h][g] + mirror[g]
+        on = (~mirror) & (trans > 0) & ((passes[h] if not first else 0) < MAX_PASSES)
+        nf = fh * np.where(mirror, refl * (1.0 - MIRROR_DIFFUSE), trans)
+        g = np.flatnonzero((on | mirror) & (nf > 0) & (model.range_max - dist > PASS_EPSILON + PASS_RELATIVE * dist))
+        if not len(g):
+            break
+        hg, mg = h[g], mirror[g]
+        nd = d[hg].copy()
+        if mg.any():
+            ng = n[g][mg].astype(np.float64)
+            rd = nd[mg] - 2.0 * np.einsum("ij,ij->i", nd[mg], ng)[:, None] * ng
+            nd[mg] = rd / np.linalg.norm(rd, axis=1, keepdims=True)
+        o = o[hg] + t[g, None] * d[hg]
+        d = nd
+        passes = (np.zeros(len(g), np.int32) if first else passes[hg]) + on[g]
+        bounces = (np.zeros(len(g), np.int32) if first else bounces[hg]) + mg
+        idx, offset, factor = idx[hg], dist[g], nf[g]
         tmin = PASS_EPSILON + PASS_RELATIVE * offset
-        keep = model.range_max - offset > tmin
-        idx, o, d, offset, factor, passes, bounces, tmin = (a[keep] for a in
-                                                             (idx, o, d, offset, factor, passes, bounces, tmin))
     cat = {k: (np.concatenate(v) if v else None) for k, v in cols.items()}
     if cat["ray"] is None:
         cat = {"ray": np.zeros(0, np.int64), "range": np.zeros(0), "cos": np.zeros(0), "reflectivity": np.zeros(0),
@@ -454,6 +453,26 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
                    instance_matrices=tables.instance_matrices, material_index=cat["material_index"],
                    materials=list(tables.materials) if tables.materials is not None else [], rays=rays,
                    structure=used)
+
+
+#: (model, divergence, samples) -> (Pattern, sub-ray directions, weights) of the last few sensors
+_PATTERNS: dict = {}
+
+
+def _pattern(model, phys):
+    """The model's pattern and its beams' sub-rays, made once per sensor setting (a scan of
+    many frames shoots the same rays in the sensor frame every frame)."""
+    key = (repr(model), phys.beam_divergence, phys.beam_samples)
+    hit = _PATTERNS.get(key)
+    if hit is None:
+        pat = model.pattern()
+        sub, weights = returns.beam_directions(pat.directions, phys.beam_divergence, phys.beam_samples)
+        for a in (pat.directions, pat.ring, pat.azimuth, pat.time, sub, weights):
+            a.flags.writeable = False
+        if len(_PATTERNS) >= 4:
+            _PATTERNS.pop(next(iter(_PATTERNS)))
+        hit = _PATTERNS[key] = (pat, sub, weights)
+    return hit
 
 
 def _merge(blocks: list[_Echoes]):
@@ -543,9 +562,8 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     model, phys, sweep = settings.model, settings.returns, settings.sweep
     vl = view_layer if view_layer is not None else (depsgraph.view_layer if depsgraph is not None else None)
     frame = scene.frame_current
-    pat = model.pattern()
+    pat, sub, weights = _pattern(model, phys)
     n_beams = len(pat)
-    sub, weights = returns.beam_directions(pat.directions, phys.beam_divergence, phys.beam_samples)
     samples = len(weights)
     duration = sweep_duration(model)
     dg = depsgraph if depsgraph is not None else session.evaluated(scene, vl)
@@ -578,7 +596,9 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
             block_of, mids = motion.sweep_blocks(pat.time, duration, n_blocks)
             plan = [(np.flatnonzero(block_of == b), float(mids[b])) for b in range(n_blocks)]
             plan = [(m, at) for m, at in plan if len(m)]
-    echoes, beam_poses = [], np.empty((n_beams, 4, 4))
+    echoes = []
+    one_pose = len(pose_times) == 1  # FRAME: one pose for every beam
+    beam_poses = None if one_pose else np.empty((n_beams, 4, 4))
     used = structure
     for members, at in plan:
         dgb = dg
@@ -588,12 +608,16 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
                 i = int(np.searchsorted(pose_times, at))
                 pose_times.insert(i, at)
                 poses.insert(i, sensor_pose(ob.evaluated_get(dgb)))
-        # every beam from the sensor's pose at its own firing time (motion.interpolate_poses)
-        bp = motion.interpolate_poses(pose_times, np.stack(poses), pat.time[members])
-        beam_poses[members] = bp
         ids = (members[:, None] * samples + np.arange(samples)[None, :]).reshape(-1)
-        o = np.repeat(bp[:, :3, 3], samples, axis=0)
-        d = np.einsum("mij,mj->mi", np.repeat(bp[:, :3, :3], samples, axis=0), sub[ids])
+        if one_pose:
+            o = pose0[None, :3, 3]
+            d = sub[ids] @ pose0[:3, :3].T
+        else:
+            # every beam from the sensor's pose at its own firing time (motion.interpolate_poses)
+            bp = motion.interpolate_poses(pose_times, np.stack(poses), pat.time[members])
+            beam_poses[members] = bp
+            o = np.repeat(bp[:, :3, 3], samples, axis=0)
+            d = np.einsum("mij,mj->mi", np.repeat(bp[:, :3, :3], samples, axis=0), sub[ids])
         e = _cast_echoes(dgb, ids, o, d, settings, used)
         used = e.structure
         echoes.append(e)
@@ -605,9 +629,13 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     real = echo >= 0
     er = np.where(real, echo, 0)
     sub_of = np.where(real, merged.ray[er] if len(merged.ray) else 0, beam * samples)
-    bp = beam_poses[beam]
-    origin = bp[:, :3, 3]
-    dirs = np.einsum("mij,mj->mi", bp[:, :3, :3], sub[sub_of])
+    if one_pose:
+        origin, rot = pose0[:3, 3], np.broadcast_to(pose0[:3, :3], (len(beam), 3, 3))
+        dirs = sub[sub_of] @ pose0[:3, :3].T
+    else:
+        bp = beam_poses[beam]
+        origin, rot = bp[:, :3, 3], bp[:, :3, :3]
+        dirs = np.einsum("mij,mj->mi", rot, sub[sub_of])
     points = origin + meas.range[:, None] * dirs
     nan3 = np.full((len(beam), 3), np.nan, np.float32)
     normals = np.where(real[:, None], merged.normals[er] if len(merged.normals) else nan3, nan3).astype(np.float32)
@@ -617,10 +645,12 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     cos = np.where(real, merged.cos[er] if len(merged.cos) else np.nan, np.nan).astype(np.float32)
     table = classification(objects)
     cls = np.where(obj >= 0, table[np.maximum(obj, 0)] if len(table) else 1, NOISE_CLASS).astype(np.uint8)
-    if space == "SENSOR":
-        rt = bp[:, :3, :3]
-        points = np.einsum("mji,mj->mi", rt, points - origin)
-        normals = np.einsum("mji,mj->mi", rt, normals.astype(np.float64)).astype(np.float32)
+    if space == "SENSOR" and one_pose:
+        points = (points - origin) @ pose0[:3, :3]
+        normals = (normals.astype(np.float64) @ pose0[:3, :3]).astype(np.float32)
+    elif space == "SENSOR":
+        points = np.einsum("mji,mj->mi", rot, points - origin)
+        normals = np.einsum("mji,mj->mi", rot, normals.astype(np.float64)).astype(np.float32)
     obj_arr, name_arr = np.empty(len(objects), object), np.empty(len(names), object)
     obj_arr[:], name_arr[:] = objects, names
     mat_arr, mat_names = np.empty(len(mats), object), np.empty(len(mats), object)
@@ -858,8 +888,10 @@ def unregister_properties():
 # -- the command line ---------------------------------------------------------------------------
 
 def scan_command(scene, args, out_dir, stdout) -> dict:
-    """``-c hybrid_raycast scan --sensor NAME [--frames A-B] --output DIR [--format ...]``:
-    the JSON document of the run (the CLI prints or writes it)."""
+    """``-c hybrid_raycast scan --sensor NAME [--frames A-B] --output DIR [--format ...]
+    [--motion ...] [--returns ...] [--beam-samples N] [--beam-divergence MRAD]``: the JSON
+    document of the run (the CLI prints or writes it).  The last four override the sensor's
+    settings for this run only: they are set on the object and put back afterwards."""
     if not args.sensor:
         raise BadInput("bad arguments: scan needs --sensor NAME (the object to scan from)")
     if out_dir is None:
@@ -876,8 +908,23 @@ def scan_command(scene, args, out_dir, stdout) -> dict:
     space = (args.space or s.space).upper()
     from .jobs import run_sync
 
-    result = run_sync(scan_job(scene, Job(), ob, frames=frames, directory=str(out_dir), fmt=fmt, space=space))
+    # --motion, --returns, --beam-samples, --beam-divergence (checked by the parser): set on the
+    # sensor for this run only, the old values put back afterwards, also on an error
+    given = {"motion": getattr(args, "motion", None), "returns": getattr(args, "returns", None),
+             "beam_samples": getattr(args, "beam_samples", None),
+             "beam_divergence": getattr(args, "beam_divergence", None)}
+    given = {k: (v.upper() if isinstance(v, str) else v) for k, v in given.items() if v is not None}
+    old = {k: getattr(s, k) for k in given}
+    try:
+        for k, v in given.items():
+            setattr(s, k, v)
+        used = {"motion": s.motion, "returns": s.returns, "beam_samples": s.beam_samples,
+                "beam_divergence": round(float(s.beam_divergence), 6)}
+        result = run_sync(scan_job(scene, Job(), ob, frames=frames, directory=str(out_dir), fmt=fmt, space=space))
+    finally:
+        for k, v in old.items():
+            setattr(s, k, v)
     print(f"hybrid_raycast scan: {result['frames']} frames, {result['rays']:,} rays, {result['points']:,} points "
-          f"-> {result['folder']}", file=stdout, flush=True)
-    return {"command": "scan", "sensor": ob.name, "frames": list(frames), "format": fmt, "space": space,
+          f"({used['motion']}, {used['returns']} returns) -> {result['folder']}", file=stdout, flush=True)
+    return {"command": "scan", "sensor": ob.name, "frames": list(frames), "format": fmt, "space": space, **used,
             "rays": result["rays"], "points": result["points"], "files": [str(p) for p in result["files"]]}

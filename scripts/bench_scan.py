@@ -19,6 +19,11 @@ timed separately):
   seconds per frame) and its per-frame median is extrapolated to the frame count.
 ``--static``: the meshes stand still and only the sensor (an Empty) moves, as when a
 vehicle drives through a static scene.
+``--returns DUAL --beam-samples 4 --beam-divergence 3``: every beam a cone of sub-rays and
+up to two returns; the ``scene.ray_cast`` loop then casts the same sub-rays.
+``--motion SWEEP``: each block of firings against the scene at its own time; with
+``--compare-frame`` the same frames are also scanned with FRAME motion in the same run,
+interleaved, and the table gains the SWEEP / FRAME ratio.
 Prints a table (medians over frames; frames per second = 1 / median); fails on nothing.
 """
 
@@ -102,6 +107,11 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--loop-frames", type=int, default=3)
     ap.add_argument("--static", action="store_true", help="the meshes stand still; only the sensor (an Empty) moves")
+    ap.add_argument("--returns", default="STRONGEST", choices=("STRONGEST", "FIRST", "LAST", "DUAL"))
+    ap.add_argument("--beam-samples", type=int, default=1)
+    ap.add_argument("--beam-divergence", type=float, default=0.0, help="milliradians")
+    ap.add_argument("--motion", default="FRAME", choices=("FRAME", "SWEEP"))
+    ap.add_argument("--compare-frame", action="store_true", help="also scan every frame with FRAME motion")
     args = ap.parse_args(argv)
     if not SHARED_SCENES.is_dir():
         print(f"needs the meshes in {SHARED_SCENES}", file=sys.stderr)
@@ -112,13 +122,19 @@ def main(argv=None):
     scene, sensor = build_scene(pkg, args.frames, static=args.static)
     dg = bpy.context.evaluated_depsgraph_get()
     tris = sum(len(o.evaluated_get(dg).data.loop_triangles) for o in scene.objects if o.type == "MESH")
-    model, _ = scan_mod.sensor_model(sensor)
-    rays = len(model.pattern())
+    s = sensor.hybrid_raycast_sensor
+    s.returns, s.beam_samples, s.beam_divergence, s.motion = (args.returns, args.beam_samples, args.beam_divergence,
+                                                              args.motion)
+    model, phys = scan_mod.sensor_model(sensor)
+    sub, _ = pkg.core.returns.beam_directions(model.pattern().directions, phys.beam_divergence, phys.beam_samples)
+    rays = len(sub)
     moving = "only the sensor moves" if args.static else f"{len(MOVING)} moving meshes"
+    print(f"sensor: returns {args.returns}, {args.beam_samples} sample(s) per beam over {args.beam_divergence:g} mrad, "
+          f"motion {args.motion}")
     print(f"scene: {tris:,} triangles ({moving}), {rays:,} rays per frame, "
           f"{args.frames} frames, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
 
-    t_set, t_scan, t_write, points, structures = [], [], [], [], set()
+    t_set, t_scan, t_write, points, structures, t_frame, blocks = [], [], [], [], set(), [], []
     out = Path(tempfile.mkdtemp(prefix="hrc-bench-scan-"))
     structure = "auto"
     for f in range(1, args.frames + 1):
@@ -128,11 +144,19 @@ def main(argv=None):
         r = pkg.api.scan(sensor, structure=structure)
         structure = r.structure  # as the Scan operator does: plan on the first frame, then keep its choice
         t2 = time.perf_counter()
-        scan_mod.write_scan(r, out / f"frame_{f:04d}.ply", "ply")
-        t3 = time.perf_counter()
-        t_set.append(t1 - t0)
         t_scan.append(t2 - t1)
-        t_write.append(t3 - t2)
+        t_set.append(t1 - t0)
+        blocks.append(r.blocks)
+        ta = time.perf_counter()
+        scan_mod.write_scan(r, out / f"frame_{f:04d}.ply", "ply")
+        t_write.append(time.perf_counter() - ta)
+        if args.compare_frame:  # the same frame with FRAME motion, interleaved
+            s.motion = "FRAME"
+            scene.frame_set(f)
+            ta = time.perf_counter()
+            pkg.api.scan(sensor, structure=structure)
+            t_frame.append(time.perf_counter() - ta)
+            s.motion = args.motion
         points.append(len(r))
         structures.add(r.structure)
     size = sum(p.stat().st_size for p in out.iterdir())
@@ -147,7 +171,7 @@ def main(argv=None):
         scene.frame_set(f)
         dg = bpy.context.evaluated_depsgraph_get()
         pose = scan_mod.sensor_pose(sensor.evaluated_get(dg))
-        d = model.pattern().directions @ pose[:3, :3].T
+        d = sub @ pose[:3, :3].T
         o = Vector(pose[:3, 3].tolist())
         t0 = time.perf_counter()
         dirs = [Vector(x) for x in d.tolist()]
@@ -167,6 +191,13 @@ def main(argv=None):
     print(f"| api.scan + binary PLY | {scan_s + write_s:.3f} | {1 / (scan_s + write_s):.2f} | "
           f"{loop_s / (scan_s + write_s):.1f} |")
     print(f"| scene.ray_cast loop ({args.loop_frames} frames timed) | {loop_s:.3f} | {1 / loop_s:.3f} | 1.0 |")
+    if t_frame:
+        fr = med(t_frame)
+        ratios = [a / b for a, b in zip(t_scan, t_frame)]
+        print(f"| api.scan, FRAME motion (same frames) | {fr:.3f} | {1 / fr:.2f} | {loop_s / fr:.1f} |")
+        print()
+        print(f"{args.motion} / FRAME: median of per-frame ratios {med(ratios):.2f} "
+              f"(min {min(ratios):.2f}, max {max(ratios):.2f}); sweep blocks per frame median {med(blocks):.0f}")
     print()
     print(f"scene.frame_set (Blender's evaluation, excluded above): median {set_s * 1e3:.1f} ms per frame")
     print(f"api.scan first frame {t_scan[0]:.3f} s, min {min(t_scan):.3f} s, max {max(t_scan):.3f} s")
