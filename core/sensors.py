@@ -17,9 +17,10 @@ Every ray has a ``ring`` (the laser channel / the row), an ``azimuth`` in degree
 [0, 360) (the firing angle of a rotating LiDAR, else atan2(y, x) of the direction) and a
 ``time`` in seconds from the start of the frame (the firing time within the sweep).
 
-No rolling scan: every ray of a frame is cast against the scene as it is at that frame
-(the scene is not re-evaluated along the sweep); ``time`` says when each ray would have
-fired, so a user can deskew or interpolate poses afterwards.
+The pattern is in the sensor frame and has no motion: a scan with FRAME motion casts every
+ray against the scene of the frame, and ``time`` says when each ray would have fired; a
+SWEEP scan (``operators/scan.py`` with ``core.motion``) casts each block of firing times
+against the scene at its own time, from the sensor's pose at each ray's time.
 
 ``Returns`` turns hits into measurements (``measure``): the range limits (a hit nearer than
 ``range_min`` is a blind-zone miss, not a see-through), Gaussian range noise with

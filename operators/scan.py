@@ -17,9 +17,16 @@ start inside it and see it.
   Each frame is evaluated and cast in the main thread (Blender data cannot be read from
   a worker); the interface redraws and Esc is read between frames.
 
-LAS classification: an object's integer custom property ``classification`` (0-255,
-ASPRS classes: 2 ground, 6 building, ...) classifies every point on it; 1
-('unclassified') otherwise.
+One frame (``scan_frame``): the pattern's beams, each a cone of ``beam_samples`` sub-rays
+(``core.returns.beam_directions``), traced through ``query.cast`` with the hit's material
+(``operators.materials``: reflectivity, glass passing light on, mirrors reflecting it up to
+``max_bounces``); every surface met is an echo, and ``core.returns.measure_returns`` turns
+the echoes into the returns the mode reports, with noise, atmosphere, rain/fog returns and
+dropout.  SWEEP motion cuts the beams into blocks of firing times (``core.motion``).
+
+Classification: an object's integer custom property ``classification`` (0-255, ASPRS
+classes: 2 ground, 6 building, ...) classifies every point on it; 1 ('unclassified')
+otherwise, 7 ('low point (noise)') for a rain or fog return.  Every format carries it.
 """
 
 from __future__ import annotations
@@ -165,8 +172,8 @@ class HybridRaycastSensor(bpy.types.PropertyGroup):
                               description="Where the Scan button writes one file per frame")
     file_format: EnumProperty(name="Format", default="PLY", description="The point-cloud file format of each frame",
                               items=(("PLY", "PLY", "Binary PLY with the object-name table in comments"),
-                                     ("LAS", "LAS", "LAS 1.4 (format 6 + extra bytes), classification from the "
-                                                    "objects' 'classification' property"),
+                                     ("LAS", "LAS", "LAS 1.4 (format 6 + extra bytes), return numbers, "
+                                                    "classification from the objects' 'classification' property"),
                                      ("NPZ", "NPZ", "numpy .npz arrays"),
                                      ("PCD", "PCD", "PCD 0.7, binary (the Point Cloud Library's format), the "
                                                     "object-name table in comments"),
@@ -311,6 +318,26 @@ class ScanResult:
     def fields(self) -> dict:
         """The per-point arrays ``core.pointcloud`` writes."""
         return {k: getattr(self, k) for k in pointcloud.FIELDS}
+
+    @property
+    def point_object_names(self) -> np.ndarray:
+        """(N,) object array: each point's object name, '' for a rain or fog return (an index
+        of -1 would pick the table's last name)."""
+        return _names_of(self.object_names, self.object_index)
+
+    @property
+    def point_material_names(self) -> np.ndarray:
+        """(N,) object array: each point's material name, '' where it hit no material."""
+        return _names_of(self.material_names, self.material_index)
+
+
+def _names_of(table, index) -> np.ndarray:
+    if table is None or index is None:
+        return np.full(0 if index is None else len(index), "", object)
+    padded = np.empty(len(table) + 1, object)
+    padded[:-1] = list(table)
+    padded[-1] = ""
+    return padded[np.where(np.asarray(index) >= 0, index, len(table))]
 
 
 def sensor_pose(ob_eval) -> np.ndarray:

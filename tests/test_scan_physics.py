@@ -178,7 +178,7 @@ def test_a_glass_pane_passes_light_on_to_the_wall_behind(fresh, addon):
     assert last.object_names[last.object_index[0]] == "Wall"
     sensor.hybrid_raycast_sensor.returns = "FIRST"
     first = addon.api.scan(sensor)
-    assert abs(first.range[0] - 5.0) < 1e-3 and first.material_names[first.material_index[0]] == "Glass"
+    assert abs(first.range[0] - 5.0) < 1e-3 and first.point_material_names.tolist() == ["Glass"]
     sensor.hybrid_raycast_sensor.returns = "DUAL"
     dual = addon.api.scan(sensor)
     assert sorted(np.round(dual.range, 3).tolist()) == [5.0, 10.0], "the pane (strongest) and the wall (last)"
@@ -221,6 +221,7 @@ def test_fog_returns_come_at_the_set_rate_near_the_sensor_as_noise(fresh, addon)
     assert abs(share - 0.2) < 0.015, f"fog returns on {share:.3f} of beams, set 0.2"
     assert r.range[fog].min() >= 0.5 and r.range[fog].max() <= 5.0
     assert (r.classification[fog] == 7).all() and (r.classification[~fog] == 1).all()
+    assert set(r.point_object_names[fog]) == {""} and set(r.point_object_names[~fog]) == {"Ground"}
     assert np.isnan(r.normals[fog]).all()
 
 
