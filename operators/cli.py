@@ -28,7 +28,9 @@ given), ``--blend PATH``, ``--scene NAME``, ``--selected-only``, ``--samples K``
 ``--density D``, ``--candidates bvh,embree``, ``--workload camera|ao``, ``--object
 NAME``, ``--ao-samples N``, ``--calibration PATH``, ``--scale tiny|quick|default``,
 ``--save [PATH]``, ``--frames 1-250`` (export, scan), ``--sensor NAME``,
-``--format ply|las|npz|pcd|kitti``, ``--space world|sensor`` (scan), ``--points FILE``,
+``--format ply|las|npz|pcd|kitti``, ``--space world|sensor``, ``--motion frame|sweep``,
+``--returns strongest|first|last|dual``, ``--beam-samples N``, ``--beam-divergence MRAD``
+(scan: the last four override the sensor's settings for the run), ``--points FILE``,
 ``--max-distance D`` (distance).
 
 ``--json -`` puts the JSON, and nothing else, on stdout: while the command runs, file
@@ -71,7 +73,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..core import pointcloud
+from ..core import motion, pointcloud, sensors
 from ..core.decide.measurements import SCALE_NOTES
 from ..settings import RAYS_MAX
 from . import calibrate as calibrate_mod
@@ -122,6 +124,24 @@ def _positive(kind, most=None):
     return conv
 
 
+def _sensor_number(name, kind):
+    """An argparse type for the sensor setting ``name``: a ``kind`` (int: a whole number)
+    within the property's own limits, read from ``HybridRaycastSensor``'s RNA."""
+    def conv(text):
+        from .scan import HybridRaycastSensor
+
+        prop = HybridRaycastSensor.bl_rna.properties[name]
+        try:
+            value = int(text) if kind is int else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"not a {'whole number' if kind is int else 'number'}: {text!r}") from None
+        if not (math.isfinite(value) and prop.hard_min <= value <= prop.hard_max):
+            raise argparse.ArgumentTypeError(f"must be from {prop.hard_min:g} to {prop.hard_max:g}, got {text}")
+        return value
+    return conv
+
+
 def parser() -> argparse.ArgumentParser:
     p = _Parser(prog=f"blender -b scene.blend -c {COMMAND}",
                 description="Grid or BVH for this scene and ray budget (Hybrid Ray Cast).",
@@ -146,6 +166,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", help="scan: the object to scan from (its hybrid_raycast_sensor settings)")
     p.add_argument("--format", choices=pointcloud.FORMATS, help="scan: file format (default: the sensor's)")
     p.add_argument("--space", choices=("world", "sensor"), help="scan: coordinates of the points (default: the sensor's)")
+    p.add_argument("--motion", type=str.lower, choices=tuple(m.lower() for m in motion.MOTIONS),
+                   help="scan: FRAME or SWEEP motion for this run (default: the sensor's)")
+    p.add_argument("--returns", type=str.lower, choices=tuple(m.lower() for m in sensors.RETURN_MODES),
+                   help="scan: which returns of a beam are reported, for this run (default: the sensor's)")
+    p.add_argument("--beam-samples", type=_sensor_number("beam_samples", int), metavar="N",
+                   help="scan: sub-rays per beam, 1-64, for this run (default: the sensor's)")
+    p.add_argument("--beam-divergence", type=_sensor_number("beam_divergence", float), metavar="MRAD",
+                   help="scan: full beam cone angle in milliradians, 0-100, for this run (default: the sensor's)")
     p.add_argument("--save", nargs="?", const="", metavar="PATH",
                    help="save the .blend afterwards (the AO bake, the results): to PATH, or the loaded file")
     p.add_argument("--frames", help="export: N, A-B or a list of them, e.g. 1-250; scan: A-B or N "

@@ -246,6 +246,9 @@ def sensor_settings(ob, scene=None) -> SensorSettings:
     model, returns = sensor_model(ob, scene)
     s = ob.hybrid_raycast_sensor
     sweep = motion.Sweep(motion=s.motion, tolerance=s.sweep_tolerance, blocks=s.sweep_blocks)
+    if returns.false_return_rate > 0 and returns.false_return_range < model.range_min:
+        raise ValueError(f"false_return_range (Clutter Range, {returns.false_return_range:g} m) must not be below "
+                         f"range_min ({model.range_min:g} m) while rain/fog returns are on")
     return SensorSettings(model, returns, sweep, bool(s.use_materials))
 
 
@@ -841,8 +844,11 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
             job.check()
             scene.frame_set(frame)
             dg = session.evaluated(scene, view_layer)
-            result = scan_frame(ob, scene, view_layer=view_layer, depsgraph=dg, space=space, settings=settings,
-                                structure=structure)
+            try:
+                result = scan_frame(ob, scene, view_layer=view_layer, depsgraph=dg, space=space, settings=settings,
+                                    structure=structure)
+            except ValueError as e:  # what only a frame shows: a material's bad reflectivity, a zero scale
+                raise BadInput(f"sensor '{ob.name}', frame {frame}: {e}") from None
             structure = result.structure
             try:
                 written.append(write_scan(result, folder / file_name(ob, frame, fmt), fmt))

@@ -361,3 +361,52 @@ def test_scan_panel_draws_existing_settings_and_the_scan_button(fresh, addon, ki
     addon.ui.scan_panel.VIEW3D_PT_hybrid_raycast_scan.draw(panel, ctx)
     assert "hybrid_raycast.scan" in seen and "range_max" in seen and "frame_end" in seen
     assert {"ROTATING": "channels", "AREA": "h_fov", "DEPTH": "width"}[kind] in seen
+
+
+def test_cli_scan_motion_and_returns_override_the_sensor_for_the_run_only(fresh, addon, tmp_path):
+    import json
+
+    _scene, sensor = scene_with_sensor()
+    s = sensor.hybrid_raycast_sensor
+    s.channels, s.azimuth_steps = 8, 360
+    code, out, err = run_cli(addon, "scan", "--sensor", "Lidar", "--frames", "2-3", "--output", str(tmp_path),
+                             "--format", "npz", "--motion", "sweep", "--returns", "DUAL", "--beam-samples", "4",
+                             "--beam-divergence", "3", "--json", str(tmp_path / "scan.json"))
+    assert code == 0, err
+    doc = json.loads((tmp_path / "scan.json").read_text())
+    assert (doc["motion"], doc["returns"], doc["beam_samples"], doc["beam_divergence"]) == ("SWEEP", "DUAL", 4, 3.0)
+    assert "(SWEEP, DUAL returns)" in out
+    z = np.load(tmp_path / "Lidar_00002.npz")
+    assert len(z["return_count"]) == len(z["range"]) > 1000
+    assert set(np.unique(z["return_count"])) <= {1, 2} and (z["return_index"] <= z["return_count"]).all()
+    assert (z["return_count"] == 2).any(), "a 3 mrad beam over the cube's edges gives dual returns"
+    # the sensor's own settings are back
+    assert (s.motion, s.returns, s.beam_samples, s.beam_divergence) == ("FRAME", "STRONGEST", 1, 0.0)
+
+
+def test_cli_scan_puts_the_sensor_settings_back_after_an_error(fresh, addon, tmp_path):
+    _scene, sensor = scene_with_sensor()
+    s = sensor.hybrid_raycast_sensor
+    s.range_min = 200.0  # no sensor: the job refuses it after the overrides are set
+    code, _o, err = run_cli(addon, "scan", "--sensor", "Lidar", "--frames", "1", "--output", str(tmp_path),
+                            "--motion", "sweep", "--returns", "last", "--beam-samples", "2")
+    assert code == 2 and "range_min" in err
+    assert (s.motion, s.returns, s.beam_samples) == ("FRAME", "STRONGEST", 1)
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["--returns", "triple"], "--returns"),
+    (["--motion", "rolling"], "--motion"),
+    (["--beam-samples", "0"], "--beam-samples"),
+    (["--beam-samples", "65"], "--beam-samples"),
+    (["--beam-samples", "2.5"], "--beam-samples"),
+    (["--beam-divergence", "-1"], "--beam-divergence"),
+    (["--beam-divergence", "nan"], "--beam-divergence"),
+])
+def test_cli_scan_bad_motion_returns_and_beam_options_exit_2_naming_the_option(fresh, addon, tmp_path, argv, words):
+    scene_with_sensor()
+    code, _out, err = run_cli(addon, "scan", "--sensor", "Lidar", "--frames", "1", "--output", str(tmp_path / "out"),
+                              *argv)
+    lines = [x for x in err.strip().splitlines() if x]
+    assert code == 2 and len(lines) == 1 and words in lines[0], (code, lines)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())

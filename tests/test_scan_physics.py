@@ -245,3 +245,21 @@ def test_bad_return_settings_raise_errors_naming_the_setting(addon, name, value,
     core_sensors = addon.core.sensors
     with pytest.raises((ValueError, TypeError), match=word):
         core_sensors.Returns(**{name: value})
+
+
+def test_a_bad_reflectivity_property_stops_a_scan_job_with_one_line_naming_it(fresh, addon, tmp_path):
+    scene, sensor = _one_beam()
+    wall = _wall("Wall", 10.0)
+    wall["hybrid_raycast_reflectivity"] = 1.5
+    scan = addon.operators.scan
+    with pytest.raises(addon.operators.jobs.BadInput, match="hybrid_raycast_reflectivity") as e:
+        addon.operators.jobs.run_sync(scan.scan_job(scene, addon.operators.jobs.Job(), sensor, frames=(1, 2),
+                                                    directory=str(tmp_path), fmt="ply"))
+    assert "frame 1" in str(e.value) and "Lidar" in str(e.value)
+    assert not list(tmp_path.iterdir()), "nothing written half-way"
+
+
+def test_clutter_range_below_range_min_is_refused_before_the_scan(fresh, addon):
+    scene, sensor = _sensor(false_return_rate=0.1, false_return_range=0.2, range_min=0.5)
+    with pytest.raises(ValueError, match="false_return_range"):
+        addon.operators.scan.sensor_settings(sensor)
