@@ -23,6 +23,8 @@ FACE_DIRS = np.array([(0, 0, -1), (0, 0, 1), (0, -1, 0), (1, 0, 0), (0, 1, 0), (
 
 def material(name, color=(0.8, 0.8, 0.8), metallic=0.0, roughness=0.5, transmission=0.0, alpha=1.0):
     m = bpy.data.materials.new(name)
+    if m.node_tree is None or bpy.app.version < (5, 0, 0):  # before 5.0 a new material has no nodes in use
+        m.use_nodes = True
     p = m.node_tree.nodes["Principled BSDF"]
     p.inputs["Base Color"].default_value = (*color, 1.0)
     p.inputs["Metallic"].default_value = metallic
@@ -174,6 +176,8 @@ def test_a_linked_base_colour_or_no_principled_falls_back_to_the_viewport_colour
     img = tex.node_tree.nodes.new("ShaderNodeTexImage")
     tex.node_tree.links.new(img.outputs["Color"], tex.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
     emit = bpy.data.materials.new("Emitter")
+    if emit.node_tree is None or bpy.app.version < (5, 0, 0):
+        emit.use_nodes = True
     nt = emit.node_tree
     nt.nodes.remove(nt.nodes["Principled BSDF"])
     e = nt.nodes.new("ShaderNodeEmission")

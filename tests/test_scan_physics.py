@@ -74,7 +74,8 @@ def _one_beam(scene_sensor_settings=None, **settings):
 
 def _material(name, **inputs):
     m = bpy.data.materials.new(name)
-    m.use_nodes = True
+    if m.node_tree is None or bpy.app.version < (5, 0, 0):  # before 5.0 a new material has no nodes in use
+        m.use_nodes = True
     bsdf = next(n for n in m.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
     for key, value in inputs.items():  # 'Transmission' before Blender 4.0
         sock = key if key in bsdf.inputs else key.replace(" Weight", "")
