@@ -92,7 +92,8 @@ import numpy as np
 
 from ..core.mesh import TriangleMesh
 
-__all__ = ["InstanceTable", "NoGeometryError", "SourceInfo", "scene_mesh", "scene_summary", "mesh_triangles"]
+__all__ = ["InstanceTable", "Layout", "MeshRead", "NoGeometryError", "SourceInfo", "mesh_key", "scene_layout",
+           "scene_mesh", "scene_summary", "mesh_triangles"]
 
 _INT_MAX = 2147483647
 _PROGRESS_EVERY = 0.1  # seconds between progress calls
@@ -306,9 +307,15 @@ class _Group:
     """One evaluated mesh and every placement of it (positions in the instance iteration)."""
 
     __slots__ = ("co", "tris", "poly", "where", "entries", "matrices", "normals", "uvs", "slots", "slot_tables",
-                 "slot_table_of", "table_of")
+                 "slot_table_of", "table_of", "key", "read")
 
-    def __init__(self, co, tris, poly, corners, me=None, attributes=()):
+    def __init__(self, co, tris, poly, corners, me=None, attributes=(), read=None):
+        self.key = None  # the mesh's identity across calls (``mesh_key``), when cached
+        self.read = read
+        if read is not None:  # the same evaluated mesh as a call before: its arrays, not read again
+            self.co, self.tris, self.poly, self.normals, self.uvs, self.slots = read.arrays
+            self._placements()
+            return
         self.co, self.tris, self.poly = co, tris, poly
         # per triangle corner: normals (T,3,3) and UVs (T,3,2) read now (the mesh of a
         # geometry-nodes instance lives only during its iteration step), only when asked
@@ -328,6 +335,9 @@ class _Group:
         # per triangle its polygon's material slot (T,) int32; slot -> material is resolved
         # per kind of placement (``slot_table``), as object-linked slots differ between objects
         self.slots = _polygon_materials(me)[poly] if "material" in attributes else None
+        self._placements()
+
+    def _placements(self):
         self.slot_tables = []  # distinct slot -> original material tuples of this mesh's placements
         self.table_of = {}  # material pointers of a slot table -> its index in slot_tables
         self.slot_table_of = []  # per placement, its index in slot_tables
@@ -350,6 +360,39 @@ class _Group:
             i = self.table_of[key] = len(self.slot_tables)
             self.slot_tables.append(mats)
         return i
+
+
+class MeshRead:
+    """One evaluated mesh's object-space arrays, kept across calls under its ``mesh_key``
+    (the session's cache): co (V, 3), tris (T, 3), poly (T,), and when read, corner normals,
+    corner UVs and per-triangle material slots.  Read-only: every scene using it shares it."""
+
+    __slots__ = ("key", "arrays", "attributes", "_local")
+
+    def __init__(self, key, group: "_Group", attributes):
+        self.key = key
+        self.arrays = (group.co, group.tris, group.poly, group.normals, group.uvs, group.slots)
+        for a in self.arrays:
+            if a is not None:
+                a.flags.writeable = False
+        self.attributes = frozenset(attributes)
+        self._local = None
+
+    def local_mesh(self) -> TriangleMesh:
+        """The mesh in its own object space (a two-level scene's bottom level builds on it)."""
+        if self._local is None:
+            co, tris, poly = self.arrays[:3]
+            self._local = TriangleMesh(co, tris, None, poly)
+        return self._local
+
+
+def mesh_key(me, owner, edits) -> tuple:
+    """What names an evaluated mesh's content across calls: its ``session_uid`` (Blender
+    gives an evaluated mesh a new one when it is evaluated again; module doc of
+    operators/session.py), the geometry updates seen on its owner object (``edits``: bpy 5.3
+    updates some evaluated meshes in place) and its sizes."""
+    return (me.session_uid, edits.get(owner.as_pointer(), 0) if edits else 0, len(me.vertices),
+            len(me.loop_triangles))
 
 
 def _polygon_materials(me) -> np.ndarray:
@@ -401,10 +444,21 @@ def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progr
         ``mesh.instances`` (costs a read per mesh and memory).
     Raises NoGeometryError when nothing visible has a triangle.
     """
+    return scene_layout(depsgraph, selected_only=selected_only, view_layer=view_layer, progress=progress,
+                        attributes=attributes).flat(progress)
+
+
+def scene_layout(depsgraph, *, selected_only: bool = False, view_layer=None, progress=None, attributes=(),
+                 cache=None, edits=None) -> "Layout":
+    """The evaluated scene as meshes and their placements (``Layout``), arguments as
+    ``scene_mesh``; ``cache`` (mesh key -> ``MeshRead``) keeps meshes across calls, so a
+    mesh whose key has not changed is not read again; ``edits``: per original object
+    pointer, the geometry updates seen (part of the key).  ``layout.flat()`` is
+    ``scene_mesh``'s world-space mesh."""
     t0 = time.perf_counter()
     vl = view_layer if view_layer is not None else depsgraph.view_layer
     attributes = tuple(attributes)
-    groups, names, info, entry_obj = _collect(depsgraph, vl, selected_only, progress, attributes)
+    groups, names, info, entry_obj = _collect(depsgraph, vl, selected_only, progress, attributes, cache, edits)
     if not groups:
         scene = depsgraph.scene.name
         if not len(depsgraph.scene.objects):
@@ -413,17 +467,104 @@ def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progr
         raise NoGeometryError(
             f"no {what}visible, render-enabled object in scene '{scene}' (view layer '{vl.name}') has triangles"
         )
-    mesh = _assemble(groups, names, progress, entry_obj, attributes)
     info.seconds = time.perf_counter() - t0
-    mesh.source_info = info
-    if progress is not None:
-        progress(1.0)
-    return mesh
+    return Layout(groups, names, entry_obj, info, attributes)
 
 
-def _collect(depsgraph, vl, selected_only, progress, attributes=()):
+class Layout:
+    """One extraction as unique meshes (``groups``, each in object space) and placements.
+
+    Per placement (I, in the order of the flat mesh's instances: group by group):
+    ``placement_group`` (I,) int32, ``matrices`` (I, 4, 4) float64 world (row-major),
+    ``tri_base`` (I,) int64 the flat index of its first triangle (so flat triangle =
+    tri_base[i] + local), ``instances`` (an ``InstanceTable`` without per-triangle arrays).
+    ``flat()`` assembles the world-space ``TriangleMesh`` (what ``scene_mesh`` returns),
+    once; a two-level scene traces without it.
+    """
+
+    def __init__(self, groups, names, entry_obj, info, attributes):
+        self.groups, self.names, self.entry_obj, self.info = groups, names, entry_obj, info
+        self.attributes = tuple(attributes)
+        counts = np.array([len(g.where) for g in groups], np.int64)
+        sizes = np.array([len(g.tris) for g in groups], np.int64)
+        self.placement_group = np.repeat(np.arange(len(groups), dtype=np.int32), counts)
+        starts = np.concatenate([[0], np.cumsum(counts * sizes)[:-1]]).astype(np.int64)
+        within = np.arange(int(counts.sum()), dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
+        self.tri_base = np.repeat(starts, counts) + within * np.repeat(sizes, counts)
+        self.triangle_count = int((counts * sizes).sum())
+        self.matrices = (np.concatenate([g.matrices for g in groups]).transpose(0, 2, 1).astype(np.float64)
+                         if groups else np.zeros((0, 4, 4)))
+        entries = np.concatenate([np.asarray(g.entries, np.int32) for g in groups]) if groups else np.zeros(0, np.int32)
+        objects, entry_object = _hit_objects(names, entry_obj)
+        self.instances = InstanceTable(objects, entry_object, self.matrices, entry_object[entries])
+        self._flat = None
+
+    def flat(self, progress=None) -> TriangleMesh:
+        if self._flat is None:
+            mesh = _assemble(self.groups, self.names, progress, self.entry_obj, self.attributes)
+            mesh.source_info = self.info
+            self._flat = mesh
+        if progress is not None:
+            progress(1.0)
+        return self._flat
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) float32 world box of the placed vertices, computed as ``flat()`` places
+        them (float32, the same products), so it equals the flat mesh's bounds; a group with
+        many placements takes its transformed object-space box instead (a looser box, not
+        worth a pass over every placed vertex)."""
+        if self._flat is not None:
+            return self._flat.bounds()
+        lo = np.full(3, np.inf, np.float32)
+        hi = np.full(3, -np.inf, np.float32)
+        for g in self.groups:
+            co, m = g.co, g.matrices  # column-major rows, as _assemble reads them
+            if not len(co) or not len(g.where):
+                continue
+            mask = np.zeros(len(co), bool)
+            mask[g.tris] = True
+            used = co if mask.all() else co[mask]
+            if len(used) * len(m) > (1 << 22):
+                c = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], np.float32)
+                glo, ghi = used.min(axis=0), used.max(axis=0)
+                used = np.where(c == 0, glo, ghi).astype(np.float32)
+            w = (used[None] @ m[:, :3, :3] + m[:, None, 3, :3]).reshape(-1, 3)
+            lo = np.minimum(lo, np.array([w[:, k].min() for k in range(3)], np.float32))
+            hi = np.maximum(hi, np.array([w[:, k].max() for k in range(3)], np.float32))
+        if not np.isfinite(lo).all():
+            return np.zeros(3, np.float32), np.zeros(3, np.float32)
+        return lo, hi
+
+    @property
+    def object_names(self):
+        return self.names
+
+    @property
+    def source_info(self):
+        return self.info
+
+    @property
+    def vertex_count(self) -> int:
+        return int(sum(len(g.co) * len(g.where) for g in self.groups))
+
+
+def _hit_objects(names, entry_obj):
+    """(the hit-able objects, each once; per entry its index among them)."""
+    objects, slot, entry_object = [], {}, np.empty(len(names), np.int32)
+    for e, ob in enumerate(entry_obj if entry_obj is not None else [None] * len(names)):
+        key = ob.as_pointer() if ob is not None else -1 - e
+        if key not in slot:
+            slot[key] = len(objects)
+            objects.append(ob)
+        entry_object[e] = slot[key]
+    return objects, entry_object
+
+
+def _collect(depsgraph, vl, selected_only, progress, attributes=(), cache=None, edits=None):
     """Walk ``object_instances`` once: decide per (instancer, source, mesh), read each kept
-    mesh once, note where each placement is; then fetch all matrices in one foreach_get."""
+    mesh once (or take it from ``cache``: mesh key -> ``MeshRead``, when its key is there
+    with every attribute asked), note where each placement is; then fetch all matrices in
+    one foreach_get."""
     render_ok = _render_enabled_objects(vl)
     n_objects = max(1, len(depsgraph.objects))
     next_report = time.perf_counter() + _PROGRESS_EVERY
@@ -485,7 +626,16 @@ def _collect(depsgraph, vl, selected_only, progress, attributes=()):
         # temporaries (no to_mesh), so a mesh pointer names one mesh for the whole walk.
         group = groups.get(me.as_pointer())
         if group is None:
-            group = groups[me.as_pointer()] = _Group(*_mesh_triangles(me), me=me, attributes=attributes)
+            mkey = mesh_key(me, ob.original, edits) if cache is not None else None
+            read = cache.get(mkey) if mkey is not None else None
+            if read is not None and read.attributes >= set(attributes):
+                group = _Group(None, None, None, None, read=read)
+            else:
+                group = _Group(*_mesh_triangles(me), me=me, attributes=attributes)
+                if mkey is not None:
+                    group.read = cache[mkey] = MeshRead(mkey, group, attributes)
+            group.key = mkey
+            groups[me.as_pointer()] = group
         # slot -> material per kind of placement: objects sharing this mesh can differ
         table = group.slot_table(ob, me) if want_materials else -1
         entry = entry_of.get(key)
@@ -652,13 +802,7 @@ def _assemble(groups, names, progress=None, entry_obj=None, attributes=()) -> Tr
             progress(0.5 + 0.5 * f0 / nt)
             next_report = time.perf_counter() + _PROGRESS_EVERY
     mesh = TriangleMesh(vertices, triangles, object_index, polygon_index, names, instance_index=instance_index)
-    objects, slot, entry_object = [], {}, np.empty(len(names), np.int32)
-    for e, ob in enumerate(entry_obj if entry_obj is not None else [None] * len(names)):
-        key = ob.as_pointer() if ob is not None else -1 - e
-        if key not in slot:
-            slot[key] = len(objects)
-            objects.append(ob)
-        entry_object[e] = slot[key]
+    objects, entry_object = _hit_objects(names, entry_obj)
     mesh.instances = InstanceTable(objects, entry_object, matrices, entry_object[instance_entry], normals, uvs)
     if tri_mat is not None:
         # keep the materials some triangle renders with (a slot no polygon uses is left out)
@@ -695,7 +839,7 @@ def scene_summary(depsgraph, mesh: TriangleMesh, elapsed: float) -> dict:
         "sources": len(mesh.object_names),
         "instances": instances,
         "triangles": mesh.triangle_count,
-        "vertices": int(len(mesh.vertices)),
+        "vertices": int(mesh.vertex_count if hasattr(mesh, "vertex_count") else len(mesh.vertices)),
         "bounds": [lo.tolist(), hi.tolist()],
         "extraction_seconds": float(elapsed),
     }

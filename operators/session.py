@@ -9,10 +9,12 @@ Right by construction: a session is reused only while its *fingerprint* is equal
 fingerprint of the depsgraph asked about, computed at every ``get``.  No update handler
 decides what is current, so handler order or a missed update cannot serve old triangles.
 The fingerprint is:
-- head: the scene, the view layer, the depsgraph mode, the frame (and subframe), the
-  selected-only setting;
+- head: the scene, the view layer, the depsgraph mode, the selected-only setting (not the
+  frame: what a frame changes shows in the body, so a frame where nothing moved keeps the
+  session, its extraction and its structures);
 - body: per evaluated object of ``depsgraph.ids`` that can bring triangles (not cameras,
-  lights, probes, speakers, armatures; instanced-only objects included): its original,
+  lights, probes, speakers, armatures, nor Empties that instance nothing; instanced-only
+  objects included): its original,
   name, type, the ``session_uid`` of its evaluated data (Blender gives an evaluated mesh a
   new one every time it is evaluated again: an edit, a modifier, geometry nodes, a
   driver; checked with bpy 5.0.1), its world matrix, visibility in the view layer,
@@ -42,7 +44,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from .. import core
-from .extract import NoGeometryError, scene_mesh, scene_summary
+from .extract import NoGeometryError, scene_layout, scene_mesh, scene_summary
 from .jobs import InvalidGeometry, NoGeometry
 
 #: (scene pointer, view layer pointer, selected_only) -> Session
@@ -72,11 +74,12 @@ def _layer_flags(vl) -> tuple:
 def fingerprint(depsgraph, selected_only: bool = False) -> tuple[tuple, tuple]:
     """(head, body) of what the extraction of ``depsgraph`` depends on (module doc)."""
     scene, vl = depsgraph.scene, depsgraph.view_layer
-    head = (scene.as_pointer(), vl.as_pointer(), depsgraph.mode, scene.frame_current,
-            float(scene.frame_subframe), bool(selected_only))
+    head = (scene.as_pointer(), vl.as_pointer(), depsgraph.mode, bool(selected_only))
     body = [_layer_flags(vl)]
     for idb in depsgraph.ids:
         if not isinstance(idb, _OBJECT) or idb.type in _NOT_GEOMETRY:
+            continue
+        if idb.type == "EMPTY" and idb.instance_type == "NONE":  # places nothing (a parent's motion shows in its children)
             continue
         orig = idb.original
         data = idb.data
@@ -136,16 +139,42 @@ def extract(depsgraph, *, selected_only=False, progress=None, attributes=()):
     return mesh, scene_summary(depsgraph, mesh, time.perf_counter() - t0)
 
 
+def _extract_layout(depsgraph, *, selected_only=False, progress=None, attributes=()):
+    """(``extract.Layout``, summary dict) of the evaluated scene, every mesh whose key is in
+    ``MESHES`` taken from there; NoGeometry or InvalidGeometry with a one-line reason."""
+    t0 = time.perf_counter()
+    try:
+        layout = scene_layout(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes,
+                              cache=MESHES, edits=EDITS)
+    except NoGeometryError as e:
+        raise NoGeometry(f"no geometry: {e}") from None
+    if not all(np.isfinite(g.co).all() for g in layout.groups):
+        bad = _non_finite_objects(depsgraph)
+        names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5]) or "an evaluated mesh"
+        raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them")
+    if progress is not None:
+        progress(1.0)
+    return layout, scene_summary(depsgraph, layout, time.perf_counter() - t0)
+
+
 # -- the session ---------------------------------------------------------------------------
+
+#: mesh key (``extract.mesh_key``) -> ``extract.MeshRead``: every evaluated mesh a live
+#: session uses, in object space, so a new session reads only the meshes that changed
+MESHES: dict = {}
+
 
 @dataclass(eq=False)
 class Session:
-    """One scene + view layer's extraction, its structures and its running totals."""
+    """One scene + view layer's extraction, its structures and its running totals.
+
+    ``layout`` is the extraction as meshes and placements; ``mesh`` the flat world-space
+    ``TriangleMesh``, assembled from it on first use."""
 
     key: tuple
     head: tuple
     body: tuple
-    mesh: object
+    layout: object
     summary: dict
     attributes: frozenset = frozenset()
     #: (kind, sorted config items) -> Accel
@@ -166,6 +195,23 @@ class Session:
     _per_triangle: object = None
     _tables: object = None
     _materials: object = None
+
+    @property
+    def mesh(self):
+        """The flat world-space ``TriangleMesh`` (``extract.Layout.flat``)."""
+        return self.layout.flat()
+
+    def inherit(self, old: "Session"):
+        """Carry the decision of the same scene's previous session (its plan, the structure
+        later casts use, the online rule's totals) when the scene is about as large: a frame
+        that moved something does not plan again."""
+        if old is None or old.chosen is None:
+            return
+        n, m = self.layout.triangle_count, old.layout.triangle_count
+        if not (m / 2 <= n <= 2 * m):
+            return
+        self.plan, self.chosen, self.calibration, self.kinds = old.plan, old.chosen, old.calibration, old.kinds
+        self.grid_time, self.grid_rays = old.grid_time, old.grid_rays
 
     @property
     def triangle_normals(self) -> np.ndarray:
@@ -274,7 +320,7 @@ class Session:
     def _maybe_switch(self, m: int):
         """Leave the grid for the candidate estimated fastest per ray, when the rays of all
         queries pass the plan's break-even or the online rule says so."""
-        n = self.mesh.triangle_count
+        n = self.layout.triangle_count
         ests = [self.calibration.estimate(k, n) for k in self.kinds if k in self.calibration.fits]
         if not ests:
             return
@@ -319,15 +365,26 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     head, body = fingerprint(depsgraph, selected_only)
     key = session_key(depsgraph, selected_only)
     want = frozenset(attributes)
-    s = SESSIONS.get(key)
-    if s is not None and s.head == head and s.body == body:
-        if not want <= s.attributes:
-            _add_attributes(s, depsgraph, selected_only, want | s.attributes)
-        return s
-    mesh, summary = extract(depsgraph, selected_only=selected_only, progress=progress, attributes=tuple(want))
-    s = Session(key, head, body, mesh, summary, want)
+    old = SESSIONS.get(key)
+    if old is not None and old.head == head and old.body == body:
+        if not want <= old.attributes:
+            _add_attributes(old, depsgraph, selected_only, want | old.attributes)
+        old.summary["frame"] = depsgraph.scene.frame_current
+        return old
+    layout, summary = _extract_layout(depsgraph, selected_only=selected_only, progress=progress,
+                                      attributes=tuple(want))
+    s = Session(key, head, body, layout, summary, want)
+    s.inherit(old)
     SESSIONS[key] = s
+    _prune()
     return s
+
+
+def _prune():
+    """Forget the meshes no live session uses (an animated mesh is a new one every frame)."""
+    live = {g.key for s in SESSIONS.values() for g in s.layout.groups if g.key is not None}
+    for k in [k for k in MESHES if k not in live]:
+        del MESHES[k]
 
 
 def _add_attributes(s: Session, depsgraph, selected_only, attributes):
@@ -416,6 +473,7 @@ def on_load_post(*_args):
 
 def clear():
     SESSIONS.clear()
+    MESHES.clear()
     ANALYSED.clear()
     EDITS.clear()
 
