@@ -288,6 +288,12 @@ def measure_returns(ray, range_, cos_incidence, reflectivity, factor, *, beams, 
         tie = np.concatenate([tie, e + fb])
 
     # -- cluster each beam's echoes along range
+    if len(beam) and (np.diff(beam) > 0).all():
+        # at most one echo a beam, in beam order (one sub-ray, nothing passed on, no false
+        # return): every echo is its own return, whatever the mode
+        s_beam, s_true, s_echo = beam, r, echo
+        intensity = np.clip(power, 0.0, 1.0).astype(np.float32)
+        return _report(s_beam, s_true, s_echo, intensity, beams, returns, key, ordered=True)
     order = np.lexsort((tie, r, beam))
     beam, r, power, echo, tie = beam[order], r[order], power[order], echo[order], tie[order]
     n = len(beam)
@@ -322,7 +328,13 @@ def measure_returns(ray, range_, cos_incidence, reflectivity, factor, *, beams, 
     sel = np.sort(sel)
     s_beam, s_true, s_int = c_beam[sel], c_range[sel], c_int[sel]
     s_echo = c_echo[sel]
-    intensity = s_int.astype(np.float32)
+    return _report(s_beam, s_true, s_echo, s_int.astype(np.float32), beams, returns, key)
+
+
+def _report(s_beam, s_true, s_echo, intensity, beams, returns, key, ordered=False) -> Measured:
+    """Noise, dropout and ranks of the selected returns (sorted by beam, then true range);
+    ``ordered``: at most one a beam, so the order by measured range is the same."""
+    sel = s_beam  # one row per selected return
 
     # -- range noise: one draw per beam in beam order (as sensors.measure), then the extras
     measured = s_true.copy()
@@ -350,19 +362,24 @@ def measure_returns(ray, range_, cos_incidence, reflectivity, factor, *, beams, 
 
     # -- the reported returns, by beam then measured range, ranked within their beam
     k = np.flatnonzero(keep)
-    k = k[np.lexsort((measured[k], s_beam[k]))]
+    if not ordered:
+        k = k[np.lexsort((measured[k], s_beam[k]))]
     out_beam = s_beam[k]
-    heads = _block_starts(out_beam)
-    counts = np.diff(np.append(heads, len(k)))
-    block = np.repeat(np.arange(len(heads)), counts)
-    rank = np.arange(len(k)) - heads[block] + 1
+    if ordered:
+        rank = count = np.ones(len(k), np.uint8)
+    else:
+        heads = _block_starts(out_beam)
+        counts = np.diff(np.append(heads, len(k)))
+        block = np.repeat(np.arange(len(heads)), counts)
+        rank = (np.arange(len(k)) - heads[block] + 1).astype(np.uint8)
+        count = counts[block].astype(np.uint8)
     return Measured(
         beam=out_beam.astype(np.int64),
         echo=s_echo[k].astype(np.int64),
         range=measured[k],
         true_range=s_true[k],
         intensity=intensity[k],
-        return_index=rank.astype(np.uint8),
-        return_count=counts[block].astype(np.uint8),
+        return_index=rank,
+        return_count=count,
         false=s_echo[k] < 0,
     )
