@@ -638,10 +638,12 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
                 i = int(np.searchsorted(pose_times, at))
                 pose_times.insert(i, at)
                 poses.insert(i, sensor_pose(ob.evaluated_get(dgb)))
-        ids = (members[:, None] * samples + np.arange(samples)[None, :]).reshape(-1)
+        whole = len(members) == n_beams  # every beam in this block (FRAME, or one block)
+        ids = np.arange(n_beams * samples) if whole else \
+            (members[:, None] * samples + np.arange(samples)[None, :]).reshape(-1)
         if one_pose:
             o = pose0[None, :3, 3]
-            d = sub[ids] @ pose0[:3, :3].T
+            d = (sub if whole else sub[ids]) @ pose0[:3, :3].T
         else:
             # every beam from the sensor's pose at its own firing time (motion.interpolate_poses)
             bp = motion.interpolate_poses(pose_times, np.stack(poses), pat.time[members])
@@ -657,8 +659,12 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
                                    frame=frame)
     beam, echo = meas.beam, meas.echo
     real = echo >= 0
-    er = np.where(real, echo, 0)
-    sub_of = np.where(real, merged.ray[er] if len(merged.ray) else 0, beam * samples)
+    every = bool(real.all())  # no rain or fog return: gather directly
+    er = echo if every else np.where(real, echo, 0)
+    if every:
+        sub_of = merged.ray[er]
+    else:
+        sub_of = np.where(real, merged.ray[er] if len(merged.ray) else 0, beam * samples)
     if one_pose:
         origin, rot = pose0[:3, 3], np.broadcast_to(pose0[:3, :3], (len(beam), 3, 3))
         dirs = sub[sub_of] @ pose0[:3, :3].T
@@ -667,12 +673,18 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         origin, rot = bp[:, :3, 3], bp[:, :3, :3]
         dirs = np.einsum("mij,mj->mi", rot, sub[sub_of])
     points = origin + meas.range[:, None] * dirs
-    nan3 = np.full((len(beam), 3), np.nan, np.float32)
-    normals = np.where(real[:, None], merged.normals[er] if len(merged.normals) else nan3, nan3).astype(np.float32)
-    obj = np.where(real, merged.object_index[er] if len(merged.object_index) else -1, -1).astype(np.int32)
-    inst = np.where(real, merged.instance_index[er] if len(merged.instance_index) else -1, -1).astype(np.int32)
-    mat = np.where(real, merged.material_index[er] if len(merged.material_index) else -1, -1).astype(np.int32)
-    cos = np.where(real, merged.cos[er] if len(merged.cos) else np.nan, np.nan).astype(np.float32)
+    if every:
+        normals, obj, inst = merged.normals[er], merged.object_index[er], merged.instance_index[er]
+        mat, cos = merged.material_index[er], merged.cos[er].astype(np.float32)
+    else:
+        nan3 = np.full((len(beam), 3), np.nan, np.float32)
+        normals = np.where(real[:, None], merged.normals[er] if len(merged.normals) else nan3, nan3)
+        obj = np.where(real, merged.object_index[er] if len(merged.object_index) else -1, -1)
+        inst = np.where(real, merged.instance_index[er] if len(merged.instance_index) else -1, -1)
+        mat = np.where(real, merged.material_index[er] if len(merged.material_index) else -1, -1)
+        cos = np.where(real, merged.cos[er] if len(merged.cos) else np.nan, np.nan).astype(np.float32)
+    normals, obj = normals.astype(np.float32, copy=False), obj.astype(np.int32, copy=False)
+    inst, mat = inst.astype(np.int32, copy=False), mat.astype(np.int32, copy=False)
     table = classification(objects)
     cls = np.where(obj >= 0, table[np.maximum(obj, 0)] if len(table) else 1, NOISE_CLASS).astype(np.uint8)
     if space == "SENSOR" and one_pose:
