@@ -11,6 +11,7 @@ from .embree import embree_available
 from .hits import Hits
 from .intersect import prepare_rays
 from .mesh import TriangleMesh
+from .twolevel import InstanceHits, TwoLevel
 from .objio import load_obj
 from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, quasi_uniform_rays, uniform_rays
@@ -26,6 +27,8 @@ __all__ = [
     "Accel",
     "Hits",
     "TriangleMesh",
+    "TwoLevel",
+    "InstanceHits",
     "all_hits",
     "build",
     "Calibration",

@@ -367,7 +367,7 @@ class MeshRead:
     (the session's cache): co (V, 3), tris (T, 3), poly (T,), and when read, corner normals,
     corner UVs and per-triangle material slots.  Read-only: every scene using it shares it."""
 
-    __slots__ = ("key", "arrays", "attributes", "_local")
+    __slots__ = ("key", "arrays", "attributes", "_local", "normals")
 
     def __init__(self, key, group: "_Group", attributes):
         self.key = key
@@ -377,6 +377,7 @@ class MeshRead:
                 a.flags.writeable = False
         self.attributes = frozenset(attributes)
         self._local = None
+        self.normals = None  # (T, 3) unit object-space normals, made on first use (_local_normals)
 
     def local_mesh(self) -> TriangleMesh:
         """The mesh in its own object space (a two-level scene's bottom level builds on it)."""
@@ -497,7 +498,7 @@ class Layout:
         entries = np.concatenate([np.asarray(g.entries, np.int32) for g in groups]) if groups else np.zeros(0, np.int32)
         objects, entry_object = _hit_objects(names, entry_obj)
         self.instances = InstanceTable(objects, entry_object, self.matrices, entry_object[entries])
-        self._flat = None
+        self._flat = self._pools = self._materials = None
 
     def flat(self, progress=None) -> TriangleMesh:
         if self._flat is None:
@@ -535,6 +536,46 @@ class Layout:
             return np.zeros(3, np.float32), np.zeros(3, np.float32)
         return lo, hi
 
+    def pools(self):
+        """What a hit on (placement, local triangle) needs without the flat mesh, made once:
+        (poly_pool (sum T,) int32 the groups' polygon indices end to end, normal_pool
+        (sum T, 3) float32 their unit object-space geometric normals, placement_base (I,)
+        int64 where each placement's group starts in them, inverse (I, 3, 3) float64
+        inverse of each placement's linear part, mirrored (I,) bool: det < 0)."""
+        if self._pools is None:
+            sizes = np.array([len(g.tris) for g in self.groups], np.int64)
+            start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+            poly = np.concatenate([g.poly for g in self.groups]) if self.groups else np.zeros(0, np.int32)
+            normal = np.concatenate([_local_normals(g) for g in self.groups]) if self.groups else np.zeros((0, 3), np.float32)
+            a = self.matrices[:, :3, :3]
+            with np.errstate(all="ignore"):
+                det = np.linalg.det(a)
+                inv = np.linalg.inv(np.where((det != 0)[:, None, None], a, np.eye(3)))
+            self._pools = (poly.astype(np.int32), normal, start[self.placement_group], inv, det < 0)
+        return self._pools
+
+    def material_pool(self):
+        """(materials some triangle renders with, pool (sum over groups and slot tables,) int32
+        of per-triangle material indices, placement_base (I,) int64 where each placement's
+        group-and-table run starts), for hits without the flat mesh; as ``flat()`` resolves them."""
+        if self._materials is None:
+            found, found_at, runs, base_of, n = [], {}, [], {}, 0
+            for gi, g in enumerate(self.groups):
+                for ti, tab in enumerate(g.slot_tables):
+                    runs.append(_slot_materials(g.slots, tab, found, found_at))
+                    base_of[(gi, ti)] = n
+                    n += len(g.tris)
+            pool = np.concatenate(runs) if runs else np.zeros(0, np.int32)
+            tables = np.concatenate([np.asarray(g.slot_table_of, np.int64) for g in self.groups]) \
+                if self.groups else np.zeros(0, np.int64)
+            base = np.array([base_of.get((int(gi), int(ti)), 0) for gi, ti in zip(self.placement_group, tables)],
+                            np.int64) if len(tables) == len(self.placement_group) else np.zeros(0, np.int64)
+            used = np.bincount(pool + 1, minlength=len(found) + 1)[1:] > 0
+            remap = np.full(len(found) + 1, -1, np.int32)
+            remap[:-1][used] = np.arange(int(used.sum()), dtype=np.int32)
+            self._materials = ([m for m, u in zip(found, used) if u], remap[pool], base)
+        return self._materials
+
     @property
     def object_names(self):
         return self.names
@@ -546,6 +587,21 @@ class Layout:
     @property
     def vertex_count(self) -> int:
         return int(sum(len(g.co) * len(g.where) for g in self.groups))
+
+
+def _local_normals(g) -> np.ndarray:
+    """(T, 3) float32 unit geometric normals of a group's triangles in object space
+    (float64 cross products; NaN for a degenerate triangle), kept with its cached read."""
+    if g.read is not None and g.read.normals is not None:
+        return g.read.normals
+    tv = g.co[g.tris].astype(np.float64)
+    n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+    if g.read is not None:
+        n.flags.writeable = False
+        g.read.normals = n
+    return n
 
 
 def _hit_objects(names, entry_obj):

@@ -279,10 +279,10 @@ class _Call:
         return (np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
                 bound(self.tmin), bound(self.tmax))
 
-    def query(self, rays, any_hit=False):
+    def query(self, rays, any_hit=False, flat=True):
         return self.session.query(*rays, any_hit=any_hit, structure=self.structure, budget=self.budget,
                                   kinds=self.kinds, calibration=self.calibration, samples=self.samples,
-                                  grid_config=self.grid_config)
+                                  grid_config=self.grid_config, flat=flat)
 
 
 def _interpolate(corners, tri, u, v):
@@ -336,7 +336,7 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
                  selected_only=selected_only, samples=samples, structure=structure, attributes=attributes)
     s, m = call.session, call.m
     objects, names = s.tables()
-    inst = s.mesh.instances
+    inst = s.mesh.instances if (smooth or uv) else s.layout.instances
     t = np.empty(m, np.float32)
     tri = np.empty(m, np.int32)
     u = np.empty(m, np.float32)
@@ -349,32 +349,47 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     smooth_n = np.empty((m, 3), np.float32) if smooth else None
     uvs = np.empty((m, 2), np.float32) if uv else None
     mat_index = mats = mat_names = None
+    two_level = not (smooth or uv)  # per-corner data lives in the flat mesh's tables
     if materials:
-        mats, tri_mat = s.material_tables()
+        if two_level:
+            found = s.layout.material_pool()[0]
+            mats = np.empty(len(found), object)
+            mats[:] = found
+        else:
+            mats = s.material_tables()[0]
         mat_names = np.empty(len(mats), object)
         mat_names[:] = [mt.name for mt in mats]  # read now: a rename is no geometry change
         mat_index = np.empty(m, np.int32)
     kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
-    tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
+    tables = None
     for a, b in call.chunks(progress):
         rays = call.rays(a, b)
-        h, kind = call.query(rays)
+        h, kind = call.query(rays, flat=not two_level)
         k = h.triangle  # -1 on a miss picks the tables' miss row
-        t[a:b], tri[a:b], u[a:b], v[a:b] = h.t, k, h.u, h.v
-        np.take(tri_obj, k, out=obj[a:b])
-        np.take(tri_ins, k, out=ins[a:b])
-        np.take(tri_poly, k, out=poly[a:b])
-        np.take(tri_normals, k, axis=0, out=normals[a:b])
-        if materials:
-            np.take(tri_mat, k, out=mat_index[a:b])
+        t[a:b], tri[a:b] = h.t, k
+        if isinstance(h, core.InstanceHits):
+            obj[a:b], ins[a:b], poly[a:b], normals[a:b], u[a:b], v[a:b] = s.decode(h)
+            if materials:
+                mat_index[a:b] = s.decode_materials(h)
+        else:
+            if tables is None:
+                tables = s.per_triangle() + ((s.material_tables()[1],) if materials else ())
+            u[a:b], v[a:b] = h.u, h.v
+            np.take(tables[0], k, out=obj[a:b])
+            np.take(tables[1], k, out=ins[a:b])
+            np.take(tables[2], k, out=poly[a:b])
+            np.take(tables[3], k, axis=0, out=normals[a:b])
+            if materials:
+                np.take(tables[4], k, out=mat_index[a:b])
         tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
         np.multiply(tt[:, None], rays[1], out=points[a:b])
         points[a:b] += rays[0]
-        sn, uvk = _corner_data(inst, k, h.u, h.v, smooth, uv)
-        if smooth:
-            smooth_n[a:b] = sn
-        if uv:
-            uvs[a:b] = uvk
+        if smooth or uv:
+            sn, uvk = _corner_data(inst, k, h.u, h.v, smooth, uv)
+            if smooth:
+                smooth_n[a:b] = sn
+            if uv:
+                uvs[a:b] = uvk
     return CastResult(t=t, hit=tri >= 0, points=points, normals=normals, objects=objects, object_names=names,
                       object_index=obj, instance_index=ins, instance_matrices=inst.matrices, polygon_index=poly,
                       triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs,
@@ -390,7 +405,7 @@ def occluded(origins, directions, *, tmin=0.0, tmax=np.inf, depsgraph=None, expe
                  selected_only=selected_only, samples=samples, structure=structure)
     out = np.empty(call.m, bool)
     for a, b in call.chunks(progress):
-        out[a:b] = call.query(call.rays(a, b), any_hit=True)[0]
+        out[a:b] = call.query(call.rays(a, b), any_hit=True, flat=False)[0]
     return out
 
 

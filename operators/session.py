@@ -162,6 +162,11 @@ def _extract_layout(depsgraph, *, selected_only=False, progress=None, attributes
 #: mesh key (``extract.mesh_key``) -> ``extract.MeshRead``: every evaluated mesh a live
 #: session uses, in object space, so a new session reads only the meshes that changed
 MESHES: dict = {}
+#: (mesh key, kind, config items) -> the bottom-level structure over that mesh in object
+#: space: built once, shared by every session (frame) that places the mesh
+BOTTOMS: dict = {}
+#: the timings of the last call, per session: what the call paid for
+TIMING_KEYS = ("extract", "bottom_builds", "top_level", "trace")
 
 
 @dataclass(eq=False)
@@ -190,6 +195,10 @@ class Session:
     grid_rays: int = 0
     calibration: object = None
     kinds: tuple = ()
+    #: whether this session replaced an earlier one of the same scene (the scene changes between calls)
+    changed: bool = False
+    #: seconds the last call paid: extraction, bottom builds, top level, trace (``TIMING_KEYS``)
+    timings: dict = field(default_factory=lambda: dict.fromkeys(TIMING_KEYS, 0.0))
     #: per triangle, the world-space unit geometric normal (float32), made on first use
     _normals: object = None
     _per_triangle: object = None
@@ -200,6 +209,74 @@ class Session:
     def mesh(self):
         """The flat world-space ``TriangleMesh`` (``extract.Layout.flat``)."""
         return self.layout.flat()
+
+    def tracer(self, kind: str, **config):
+        """What traces with ``kind``: the flat structure while the scene has not changed
+        since its first call, else a two-level scene (``core.TwoLevel``) of one bottom level
+        per unique mesh, each built once over the mesh in object space and shared by every
+        session that places it, under a top level over this session's placements.
+
+        The line between them is the structures' life (the paper's decision over it): a
+        scene that stays put keeps its first session, where one flat structure traces
+        fastest (the top level costs per ray; BENCHMARKS.md, "Two-level scenes"); a scene
+        that changes between calls would build a flat structure for every change, where
+        the two-level one only places its bottoms again."""
+        if not self.changed:
+            return self.structure(kind, **config)
+        k = ("twolevel", kind, tuple(sorted(config.items())))
+        acc = self.structures.get(k)
+        if acc is None:
+            t0 = time.perf_counter()
+            bottoms = [self._bottom(g, kind, config) for g in self.layout.groups]
+            t1 = time.perf_counter()
+            lay = self.layout
+            acc = self.structures[k] = core.TwoLevel(bottoms, lay.placement_group, lay.matrices, lay.tri_base)
+            self.timings["bottom_builds"] += t1 - t0
+            self.timings["top_level"] += time.perf_counter() - t1
+        return acc
+
+    @staticmethod
+    def _bottom(g, kind, config):
+        key = (g.key, kind, tuple(sorted(config.items()))) if g.key is not None else None
+        acc = BOTTOMS.get(key) if key is not None else None
+        if acc is None:
+            local = g.read.local_mesh() if g.read is not None else core.TriangleMesh(g.co, g.tris, None, g.poly)
+            acc = core.build(local.prepare(), kind, **config)
+            if key is not None:
+                BOTTOMS[key] = acc
+        return acc
+
+    def decode(self, h):
+        """Per-hit (object index, instance index, polygon index, unit world normal, u, v)
+        of a two-level trace's ``core.InstanceHits``, without the flat mesh: the normal is
+        the object-space one turned by the inverse transpose of the instance's matrix, and
+        a mirrored instance's u and v trade places (the flat mesh swaps two corners there)."""
+        poly_pool, normal_pool, base, inv, mirrored = self.layout.pools()
+        inst = h.instance
+        got = inst >= 0
+        i = np.where(got, inst, 0)
+        at = base[i] + np.where(got, h.local_triangle, 0)
+        obj = np.where(got, self.layout.instances.instance_object[i], -1).astype(np.int32)
+        poly = np.where(got, poly_pool[at] if len(poly_pool) else -1, -1).astype(np.int32)
+        n = np.einsum("mj,mjk->mk", normal_pool[at].astype(np.float64), inv[i]) if len(normal_pool) \
+            else np.zeros((len(inst), 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+        n[~got] = np.nan
+        swap = got & mirrored[i]
+        u = np.where(swap, h.v, h.u)
+        v = np.where(swap, h.u, h.v)
+        return obj, np.where(got, inst, -1).astype(np.int32), poly, n.astype(np.float32), u, v
+
+    def decode_materials(self, h) -> np.ndarray:
+        """(M,) int32 material index (into ``material_tables()[0]``) of two-level hits."""
+        mats, pool, base = self.layout.material_pool()
+        poly_pool, normal_pool, gbase, inv, mirrored = self.layout.pools()
+        got = h.instance >= 0
+        i = np.where(got, h.instance, 0)
+        if not len(pool) or not len(base):
+            return np.full(len(got), -1, np.int32)
+        return np.where(got, pool[base[i] + np.where(got, h.local_triangle, 0)], -1).astype(np.int32)
 
     def inherit(self, old: "Session"):
         """Carry the decision of the same scene's previous session (its plan, the structure
@@ -242,7 +319,7 @@ class Session:
     def tables(self):
         """(objects, their names) as object arrays, so ``objects[object_index[hit]]`` works."""
         if self._tables is None:
-            obs = self.mesh.instances.objects
+            obs = self.layout.instances.objects
             objects, names = np.empty(len(obs), object), np.empty(len(obs), object)
             objects[:] = obs
             names[:] = [ob.name if ob is not None else "" for ob in obs]
@@ -275,7 +352,7 @@ class Session:
         return acc
 
     def query(self, o, d, tmin, tmax, *, any_hit=False, structure="auto", budget, kinds, calibration,
-              samples, grid_config):
+              samples, grid_config, flat=True):
         """Nearest hits (``core.Hits``) or any-hit booleans of one batch, and the structure used.
 
         'grid', 'bvh', 'embree' use that structure.  'auto': the session's first query
@@ -285,10 +362,17 @@ class Session:
         the rays of all queries so far: switch when they pass the plan's break-even, or
         by the online rule (``core.ski_rental``) once the grid's accumulated trace time
         reaches the estimated build time of the candidate estimated fastest per ray.
+        ``flat=False``: trace with the two-level scene (``tracer``; its hits are
+        ``core.InstanceHits``, decoded by ``decode``) wherever the flat mesh is not needed
+        (the first plan of a scene traces flat).
         """
+        pick = self.structure if flat else self.tracer
         if structure != "auto":
-            acc = self.structure("grid", **grid_config) if structure == "grid" else self.structure(structure)
-            return (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax), structure
+            acc = pick("grid", **grid_config) if structure == "grid" else pick(structure)
+            t0 = time.perf_counter()
+            out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax)
+            self.timings["trace"] += time.perf_counter() - t0
+            return out, structure
         if self.chosen is None:
             grid = self.cached("grid", **grid_config)
             p = core.plan(self.mesh, budget, calibration, rays=(o, d, tmin, tmax), samples=samples, grid=grid,
@@ -309,11 +393,13 @@ class Session:
             return out, p.chosen
         if self.chosen == "grid":
             self._maybe_switch(len(o))
-        acc = self.structure(self.chosen, **(grid_config if self.chosen == "grid" else {}))
+        acc = pick(self.chosen, **(grid_config if self.chosen == "grid" else {}))
         t0 = time.perf_counter()
         out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax)
+        dt = time.perf_counter() - t0
+        self.timings["trace"] += dt
         if self.chosen == "grid":
-            self.grid_time += time.perf_counter() - t0
+            self.grid_time += dt
             self.grid_rays += len(o)
         return out, self.chosen
 
@@ -367,13 +453,16 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     want = frozenset(attributes)
     old = SESSIONS.get(key)
     if old is not None and old.head == head and old.body == body:
+        old.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         if not want <= old.attributes:
             _add_attributes(old, depsgraph, selected_only, want | old.attributes)
         old.summary["frame"] = depsgraph.scene.frame_current
         return old
+    t0 = time.perf_counter()
     layout, summary = _extract_layout(depsgraph, selected_only=selected_only, progress=progress,
                                       attributes=tuple(want))
-    s = Session(key, head, body, layout, summary, want)
+    s = Session(key, head, body, layout, summary, want, changed=old is not None)
+    s.timings["extract"] = time.perf_counter() - t0
     s.inherit(old)
     SESSIONS[key] = s
     _prune()
@@ -385,19 +474,30 @@ def _prune():
     live = {g.key for s in SESSIONS.values() for g in s.layout.groups if g.key is not None}
     for k in [k for k in MESHES if k not in live]:
         del MESHES[k]
+    for k in [k for k in BOTTOMS if k[0] not in live]:
+        del BOTTOMS[k]
 
 
 def _add_attributes(s: Session, depsgraph, selected_only, attributes):
-    mesh, _ = extract(depsgraph, selected_only=selected_only, attributes=tuple(attributes))
-    if mesh.triangle_count != s.mesh.triangle_count or not np.array_equal(mesh.triangles, s.mesh.triangles) \
-            or not np.array_equal(mesh.vertices, s.mesh.vertices):
+    """Read the scene again with more per-corner or per-triangle data; the geometry (and so
+    every structure built) stays, the new layout replaces the old one."""
+    layout, _ = _extract_layout(depsgraph, selected_only=selected_only, attributes=tuple(attributes))
+    old = s.layout
+    if layout.triangle_count != old.triangle_count or not np.array_equal(layout.tri_base, old.tri_base) \
+            or not np.array_equal(layout.placement_group, old.placement_group):
         raise RuntimeError("the scene extracted differently with the same fingerprint")  # extraction is deterministic
-    s.mesh.instances.corner_normals = mesh.instances.corner_normals
-    s.mesh.instances.corner_uvs = mesh.instances.corner_uvs
-    s.mesh.instances.materials = mesh.instances.materials
-    s.mesh.instances.triangle_material = mesh.instances.triangle_material
+    if old._flat is not None:  # structures over the flat mesh keep it: give it the new arrays
+        mesh = layout.flat()
+        if not np.array_equal(mesh.triangles, old._flat.triangles) or not np.array_equal(mesh.vertices,
+                                                                                          old._flat.vertices):
+            raise RuntimeError("the scene extracted differently with the same fingerprint")
+        for name in ("corner_normals", "corner_uvs", "materials", "triangle_material"):
+            setattr(old._flat.instances, name, getattr(mesh.instances, name))
+        layout._flat = old._flat
+    s.layout = layout
     s._materials = None
     s.attributes = frozenset(attributes)
+    _prune()
 
 
 def evaluated(scene=None, view_layer=None):
@@ -474,6 +574,7 @@ def on_load_post(*_args):
 def clear():
     SESSIONS.clear()
     MESHES.clear()
+    BOTTOMS.clear()
     ANALYSED.clear()
     EDITS.clear()
 

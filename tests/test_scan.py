@@ -229,7 +229,10 @@ def test_a_kitti_scan_writes_a_bin_per_frame_and_every_frames_pose(fresh, addon,
     for i, frame in enumerate((2, 3, 4)):
         ref = addon.api.scan(sensor, frame=frame)
         k = np.fromfile(tmp_path / f"Lidar_{frame:05d}.bin", np.float32).reshape(-1, 4)
-        assert np.array_equal(k[:, :3], ref.points.astype(np.float32)) and np.array_equal(k[:, 3], ref.intensity)
+        # the job's first frame traces flat while it plans, later scans with the two-level scene: the
+        # same hits to float32 rounding of the object-space ray (core/twolevel.py)
+        assert len(k) == len(ref.points), f"frame {frame}: {len(k)} points written, {len(ref.points)} scanned"
+        assert np.allclose(k[:, :3], ref.points, rtol=0, atol=1e-4) and np.allclose(k[:, 3], ref.intensity, atol=1e-5)
         assert np.allclose(poses[i], ref.sensor_matrix[:3], rtol=0, atol=1e-8)
     pcd = scan.write_scan(addon.api.scan(sensor, frame=2), tmp_path / "one.pcd", "pcd")
     assert pcd.read_bytes().startswith(b"# .PCD v0.7")

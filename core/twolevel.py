@@ -1,0 +1,571 @@
+"""Two levels: instances of bottom-level structures, and a top level over their world boxes.
+
+One bottom level per unique mesh, built once in the mesh's object space
+(``core.build(mesh, kind)``), placed any number of times by 4x4 object-to-world
+matrices; only the top level, over the instances' world boxes, is rebuilt when the
+matrices change (``with_matrices``).  The idea is pbrt-v4's ``TransformedPrimitive``
+under a top-level BVH, and Embree's instancing (``RTC_GEOMETRY_TYPE_INSTANCE``).
+
+A ray enters an instance in object space, ``o' = A^-1 (o - b)``, ``d' = A^-1 d`` (``M =
+[A b; 0 1]``, in float64, then rounded to float32 by the bottom), and ``d'`` is not
+renormalised, so ``t``, ``tmin`` and ``tmax`` keep their world meaning and the
+barycentrics (affine invariants) need no mapping.  The answer is the one a flat
+world-space soup of every instance's transformed triangles gives, traced by the same
+kind, within float32 rounding: the nearest hit with tmin < t <= tmax, an exact tie in t
+going to the lowest *global* triangle index (``tri_base[instance] + local``).
+
+The top level culls with each instance's world box: the object-space bounds of its
+bottom mesh, whose 8 corners are transformed in float64, padded outward by ``BOX_PAD``
+of the box's coordinate scale (the float32 rounding of the object-space ray and of the
+bottom's arithmetic moves a hit by a few ulps of that scale), against the segment
+[tmin, best t so far] with a slab test widened as Ize's (JCGT 2013, ``1 + 2 gamma(3)``).
+
+Two ways to visit the instances, chosen by the number of instances with a box
+(``pairs_from``, default 64).  The crossover depends on the bottoms: with one shared
+numpy BVH the batched pairs path wins from a handful of instances on, with Embree
+bottoms or one distinct bottom per instance only from several tens, as each bottom call
+is then cheap or the batching gains nothing; 64 is where both were about even
+(BENCHMARKS.md, "Two-level scenes"):
+
+- few instances (``_trace_loop``): per chunk of rays, every instance's slab interval for
+  every ray, then one bottom call per instance, nearest mean box entry first, each
+  tracing only the rays that reach its box before their best hit so far, with that best
+  as their tmax;
+- many instances (``_trace_pairs``, geometry-nodes scattering): a top-level tree over
+  the boxes (instances sorted by the Morton code of their box centres, a complete binary
+  tree over that order, built bottom-up in whole-array steps: O(I log I)) is traversed
+  one level per numpy step, giving candidate (ray, instance) pairs with their box entry;
+  these are traced in rounds by entry rank per ray (the 1st, the 2nd, the 3rd-4th,
+  5th-8th, ...), each round dropping the pairs whose box starts beyond their ray's best
+  hit and tracing all pairs of one bottom in one call (tmax per pair).  When a chunk's
+  pairs would pass ``pair_limit``, the chunk is split, so memory stays bounded.
+
+An instance whose matrix is singular (det A = 0, e.g. a zero scale) or whose inverse
+overflows is never hit (its world triangles are degenerate, and degenerate triangles
+are never hit); a pair whose object-space ray overflows float32 or rounds to a zero
+direction is a miss for that instance.  NaN or inf in a matrix is a ValueError naming
+the instance, as is a bottom row other than (0, 0, 0, 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .hits import Hits
+from .intersect import UNIT_ROUNDOFF, prepare_rays
+from .mesh import TriangleMesh
+
+F32 = np.float32
+#: instances (with a non-empty box) from which the top-level tree and the batched pairs
+#: path are used instead of a loop over instances (crossover: BENCHMARKS.md, "Two-level scenes")
+PAIRS_FROM = 64
+#: rays per chunk: bounds the per-chunk working set
+RAY_CHUNK = 1 << 16
+#: (ray, box) pairs a chunk may hold at once, in the tree traversal and in the loop
+#: path's (instances x rays) intervals; a chunk that needs more is split
+PAIR_LIMIT = 1 << 21
+#: a world box is padded by this times its largest coordinate magnitude plus its extent:
+#: 16 float32 ulps of the box's scale, more than the rounding of the object-space ray
+#: (one ulp of each coordinate) and of the watertight kernel (a few) move a hit
+BOX_PAD = 16 * UNIT_ROUNDOFF
+_GAMMA3 = 3 * np.finfo(np.float64).eps / 2 / (1 - 3 * np.finfo(np.float64).eps / 2)
+_NO_GLOBAL = np.iinfo(np.int64).max
+
+
+@dataclass
+class InstanceHits(Hits):
+    """``Hits`` of a two-level trace, one entry per ray.
+
+    t: (M,) float32, +inf on a miss, in world units of the given direction
+    triangle: (M,) GLOBAL triangle index (``tri_base[instance] + local_triangle``), -1 on
+      a miss; int32, or int64 when the global indices can pass the int32 range
+    u, v: (M,) float32 barycentrics of the local triangle (0 on a miss)
+    instance: (M,) int32 instance hit, -1 on a miss
+    local_triangle: (M,) int32 triangle of the instance's bottom mesh, -1 on a miss
+    """
+
+    instance: np.ndarray
+    local_triangle: np.ndarray
+
+    @classmethod
+    def empty(cls, m: int, triangle_dtype=np.int32) -> "InstanceHits":
+        return cls(t=np.full(m, np.inf, F32), triangle=np.full(m, -1, triangle_dtype),
+                   u=np.zeros(m, F32), v=np.zeros(m, F32),
+                   instance=np.full(m, -1, np.int32), local_triangle=np.full(m, -1, np.int32))
+
+
+class _Best:
+    """Per-ray nearest hit so far, global triangle as the tie-break (int64: any index)."""
+
+    def __init__(self, m: int):
+        self.t = np.full(m, np.inf, F32)
+        self.g = np.full(m, _NO_GLOBAL, np.int64)
+        self.inst = np.full(m, -1, np.int32)
+        self.local = np.full(m, -1, np.int32)
+        self.u = np.zeros(m, F32)
+        self.v = np.zeros(m, F32)
+
+    def fold(self, ray, inst, h: Hits, tri_base):
+        """Fold in one bottom call's hits for pairs (ray, inst): the nearest per ray, an
+        exact tie in t to the lowest global triangle (a ray may come several times)."""
+        k = np.flatnonzero(h.triangle >= 0)
+        if k.size == 0:
+            return
+        ray, inst, t, loc = ray[k], inst[k], h.t[k], h.triangle[k].astype(np.int64)
+        g = tri_base[inst] + loc
+        order = np.lexsort((g, t, ray))
+        first = np.ones(order.size, bool)
+        first[1:] = ray[order[1:]] != ray[order[:-1]]
+        w = order[first]  # each ray's nearest candidate of this call
+        r = ray[w]
+        better = (t[w] < self.t[r]) | ((t[w] == self.t[r]) & (g[w] < self.g[r]))
+        w, r = w[better], r[better]
+        self.t[r] = t[w]
+        self.g[r] = g[w]
+        self.inst[r] = inst[w]
+        self.local[r] = loc[w]
+        self.u[r] = h.u[k][w]
+        self.v[r] = h.v[k][w]
+
+
+class TwoLevel:
+    """Instances of bottom-level structures under a top level over their world boxes.
+
+    Parameters
+    ----------
+    bottoms : sequence of Accel
+        One structure per unique mesh (any kind of ``core.build``), each over an
+        object-space ``TriangleMesh`` (``bottom.mesh``); shared, never modified.
+    instance_bottom : (I,) int
+        Which bottom each instance places.
+    matrices : (I, 4, 4) float
+        Object-to-world matrices, row-major as Blender's ``matrix_world``
+        (``p_world = M @ [p, 1]``); used in float64.
+    tri_base : (I,) int, optional
+        The global index of each instance's triangle 0 (a hit's ``triangle`` is
+        ``tri_base[i] + local``); default: consecutive in instance order.
+    pairs_from : int
+        Instances with a box from which the tree and the batched pairs path are used.
+    ray_chunk, pair_limit : int
+        Rays per chunk; (ray, box) pairs a chunk may hold before it is split.
+
+    Raises ValueError for shapes that do not fit, a bottom index out of range, a negative
+    ``tri_base``, NaN or inf in a matrix, or a bottom row other than (0, 0, 0, 1); the
+    message names the first bad instance.
+    """
+
+    kind = "twolevel"
+
+    def __init__(self, bottoms, instance_bottom, matrices, tri_base=None, *, pairs_from: int = PAIRS_FROM,
+                 ray_chunk: int = RAY_CHUNK, pair_limit: int = PAIR_LIMIT):
+        self.bottoms = tuple(bottoms)
+        for k, b in enumerate(self.bottoms):
+            if not isinstance(getattr(b, "mesh", None), TriangleMesh) or not hasattr(b, "trace"):
+                raise TypeError(f"bottom {k} is not a structure over a core.TriangleMesh (core.build), got {type(b).__name__}")
+        ib = np.asarray(instance_bottom)
+        if ib.ndim != 1 or (ib.size and not np.issubdtype(ib.dtype, np.integer)):
+            raise ValueError(f"instance_bottom must be a (I,) integer array, got shape {ib.shape} dtype {ib.dtype}")
+        if ib.size and (ib.min() < 0 or ib.max() >= len(self.bottoms)):
+            bad = np.flatnonzero((ib < 0) | (ib >= len(self.bottoms)))
+            raise ValueError(f"instance {bad[0]} places bottom {ib[bad[0]]}, outside 0..{len(self.bottoms) - 1}")
+        self.instance_bottom = ib.astype(np.int32)
+        n = len(ib)
+        self._bottom_triangles = np.array([b.mesh.triangle_count for b in self.bottoms], np.int64)
+        counts = self._bottom_triangles[self.instance_bottom] if n else np.zeros(0, np.int64)
+        if tri_base is None:
+            tri_base = np.concatenate([[0], np.cumsum(counts)[:-1]]) if n else np.zeros(0, np.int64)
+        base = np.asarray(tri_base)
+        if base.shape != (n,) or (base.size and not np.issubdtype(base.dtype, np.integer)):
+            raise ValueError(f"tri_base must be a ({n},) integer array, got shape {base.shape} dtype {base.dtype}")
+        if base.size and base.min() < 0:
+            raise ValueError(f"tri_base is negative at instance {np.flatnonzero(base < 0)[0]}")
+        self.tri_base = base.astype(np.int64)
+        self.triangle_count = int(counts.sum())
+        top = int((self.tri_base + counts).max()) if n else 0
+        #: dtype of the global ``triangle`` of the hits
+        self.triangle_dtype = np.dtype(np.int32 if top - 1 <= np.iinfo(np.int32).max else np.int64)
+        self.pairs_from = int(pairs_from)
+        self.ray_chunk = max(1, int(ray_chunk))
+        self.pair_limit = max(2, int(pair_limit))
+        self._place(matrices)
+
+    # -- the top level ----------------------------------------------------------------
+    def _place(self, matrices):
+        """Validate the matrices, invert them, make the world boxes and (for many
+        instances) the top-level tree.  O(I log I)."""
+        n = self.instance_count
+        m = np.asarray(matrices, dtype=np.float64)
+        if m.shape != (n, 4, 4):
+            raise ValueError(f"matrices must have shape ({n}, 4, 4), got {m.shape}")
+        bad = ~np.isfinite(m).all(axis=(1, 2))
+        if bad.any():
+            raise ValueError(f"{bad.sum()} instance matrices contain NaN or inf, first at instance {np.flatnonzero(bad)[0]}")
+        bad = (m[:, 3] != (0.0, 0.0, 0.0, 1.0)).any(axis=1)
+        if bad.any():
+            i = np.flatnonzero(bad)[0]
+            raise ValueError(f"instance {i}: the bottom row of its matrix is {m[i, 3].tolist()}, not (0, 0, 0, 1) (affine only)")
+        self.matrices = m
+        a, b = m[:, :3, :3], m[:, :3, 3]
+        self._translation = np.ascontiguousarray(b)
+        with np.errstate(all="ignore"):
+            det = np.linalg.det(a) if n else np.zeros(0)
+            ok = np.isfinite(det) & (det != 0)
+            inv = np.zeros((n, 3, 3))
+            if ok.any():
+                inv[ok] = np.linalg.inv(a[ok])
+        ok &= np.isfinite(inv).all(axis=(1, 2))
+        #: (I,) bool: instances whose matrix is singular (or its inverse overflows): never hit
+        self.singular = ~ok
+        ok &= self._bottom_triangles[self.instance_bottom] > 0
+        self._inverse = inv
+        # world boxes: the 8 corners of the object box through M, in float64
+        lo = np.full((n, 3), np.inf)
+        hi = np.full((n, 3), -np.inf)
+        active = np.flatnonzero(ok)
+        if active.size:
+            blo = np.array([bt.mesh.bounds()[0] for bt in self.bottoms], np.float64)
+            bhi = np.array([bt.mesh.bounds()[1] for bt in self.bottoms], np.float64)
+            olo, ohi = blo[self.instance_bottom[active]], bhi[self.instance_bottom[active]]
+            bits = (np.arange(8)[:, None] >> np.arange(3)) & 1  # (8, 3) corner selectors
+            corners = np.where(bits[None], ohi[:, None, :], olo[:, None, :])  # (A, 8, 3)
+            world = np.einsum("aij,akj->aki", a[active], corners) + b[active][:, None, :]
+            wlo, whi = world.min(axis=1), world.max(axis=1)
+            pad = BOX_PAD * (np.maximum(np.abs(wlo), np.abs(whi)).max(axis=1) + (whi - wlo).max(axis=1))
+            lo[active] = wlo - pad[:, None]
+            hi[active] = whi + pad[:, None]
+        self._lo, self._hi = lo, hi
+        self._active = active.astype(np.int32)
+        self._tree = _TopTree(lo[active], hi[active]) if active.size >= self.pairs_from else None
+
+    def with_matrices(self, matrices) -> "TwoLevel":
+        """The same bottoms, instances and global indices at new placements: only the top
+        level (boxes, inverses, tree) is rebuilt; the bottoms are shared."""
+        new = TwoLevel.__new__(TwoLevel)
+        new.__dict__.update({k: v for k, v in self.__dict__.items()})
+        new._place(matrices)
+        return new
+
+    @property
+    def instance_count(self) -> int:
+        return int(len(self.instance_bottom))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) float32 world box over the instances that can be hit (their padded
+        boxes, rounded outward); zeros when there is none."""
+        if self._active.size == 0:
+            return np.zeros(3, F32), np.zeros(3, F32)
+        lo = self._lo[self._active].min(axis=0)
+        hi = self._hi[self._active].max(axis=0)
+        lo32, hi32 = lo.astype(F32), hi.astype(F32)
+        lo32 = np.where(lo32 > lo, np.nextafter(lo32, F32(-np.inf)), lo32)
+        hi32 = np.where(hi32 < hi, np.nextafter(hi32, F32(np.inf)), hi32)
+        return lo32, hi32
+
+    def flatten(self) -> TriangleMesh:
+        """The equivalent flat world-space soup: every instance's triangles through its
+        matrix (float64, then float32), ordered by global index, with ``instance_index``.
+        Assumes the default consecutive ``tri_base`` (raises ValueError otherwise)."""
+        counts = self._bottom_triangles[self.instance_bottom]
+        if self.instance_count and not np.array_equal(self.tri_base, np.concatenate([[0], np.cumsum(counts)[:-1]])):
+            raise ValueError("flatten() needs the default consecutive tri_base")
+        verts, tris, owner, nv = [], [], [], 0
+        for i, k in enumerate(self.instance_bottom):
+            mesh = self.bottoms[k].mesh
+            w = mesh.vertices.astype(np.float64) @ self.matrices[i, :3, :3].T + self.matrices[i, :3, 3]
+            verts.append(w)
+            tris.append(mesh.triangles.astype(np.int64) + nv)
+            owner.append(np.full(mesh.triangle_count, i, np.int32))
+            nv += len(w)
+        if not verts:
+            return TriangleMesh(np.zeros((0, 3), F32), np.zeros((0, 3), np.int32))
+        return TriangleMesh(np.vstack(verts), np.vstack(tris), instance_index=np.concatenate(owner))
+
+    # -- rays -------------------------------------------------------------------------
+    @staticmethod
+    def _prepare(origins, directions, tmin, tmax):
+        """prepare_rays (validation, float32) after broadcasting one origin or one
+        direction row against the other's (M, 3)."""
+        o, d = np.asarray(origins), np.asarray(directions)
+        o2 = o[None, :] if o.ndim == 1 else o
+        d2 = d[None, :] if d.ndim == 1 else d
+        if o2.ndim == 2 and d2.ndim == 2 and o2.shape[1:] == d2.shape[1:] == (3,) and len(o2) != len(d2) \
+                and 1 in (len(o2), len(d2)):
+            o2, d2 = np.broadcast_arrays(o2, d2)
+        return prepare_rays(o2, d2, tmin, tmax, shear=False)
+
+    def _chunks(self, m: int, per: int):
+        return [slice(a, min(m, a + per)) for a in range(0, m, per)]
+
+    def _object_rays(self, ray, inst, o64, d64, single: bool):
+        """The pairs' rays in their instances' object space (float64), and which of them
+        the bottom can take (finite in float32, a direction that does not round to zero)."""
+        # the same float64 operations in the same order on both paths (``_mul``), so the
+        # loop and the tree hand a bottom bit-identical rays
+        key = inst[0] if single else inst
+        ai = self._inverse[key]
+        oo = _mul(ai, o64[ray] - self._translation[key])
+        dd = _mul(ai, d64[ray])
+        with np.errstate(over="ignore", invalid="ignore"):
+            o32, d32 = oo.astype(F32), dd.astype(F32)
+            good = np.isfinite(o32).all(axis=1) & np.isfinite(d32).all(axis=1) & (d32 != 0).any(axis=1)
+        return o32, d32, good
+
+    def _call_bottom(self, bottom, ray, inst, rays, o64, d64, tmax_pair, occluded: bool, single=False):
+        """One call to ``bottom`` for pairs (ray, inst): Hits (or an (P,) bool) per pair."""
+        o32, d32, good = self._object_rays(ray, inst, o64, d64, single)
+        if not good.all():
+            k = np.flatnonzero(good)
+            sub = self._call_bottom_ok(bottom, o32[k], d32[k], rays.tmin[ray[k]], tmax_pair[k], occluded)
+            if occluded:
+                out = np.zeros(len(ray), bool)
+                out[k] = sub
+                return out
+            out = Hits.empty(len(ray))
+            out.t[k], out.triangle[k], out.u[k], out.v[k] = sub.t, sub.triangle, sub.u, sub.v
+            return out
+        return self._call_bottom_ok(bottom, o32, d32, rays.tmin[ray], tmax_pair, occluded)
+
+    @staticmethod
+    def _call_bottom_ok(bottom, o32, d32, tmin, tmax, occluded):
+        if len(o32) == 0:
+            return np.zeros(0, bool) if occluded else Hits.empty(0)
+        return bottom.occluded(o32, d32, tmin, tmax) if occluded else bottom.trace(o32, d32, tmin, tmax)
+
+    # -- the public interface ---------------------------------------------------------
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> InstanceHits:
+        """Nearest hit per ray over all instances, with tmin < t <= tmax (world units of
+        the given directions); an exact tie in t goes to the lowest global triangle.
+
+        origins, directions: (M, 3), or one (3,) row broadcast against the other's M rows;
+        tmin, tmax: scalars or (M,).  Returns ``InstanceHits``."""
+        rays = self._prepare(origins, directions, tmin, tmax)
+        m = len(rays)
+        out = InstanceHits.empty(m, self.triangle_dtype)
+        if m == 0 or self._active.size == 0:
+            return out
+        best = _Best(m)
+        self._run(rays, best, occluded=None)
+        hit = best.inst >= 0
+        out.t[:] = best.t
+        out.triangle[hit] = best.g[hit]
+        out.u[:], out.v[:] = best.u, best.v
+        out.instance[:], out.local_triangle[:] = best.inst, best.local
+        return out
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """(M,) bool: True where some instance's triangle is hit with tmin < t <= tmax
+        (each ray stops at its first hit instance)."""
+        rays = self._prepare(origins, directions, tmin, tmax)
+        m = len(rays)
+        hit = np.zeros(m, bool)
+        if m == 0 or self._active.size == 0:
+            return hit
+        self._run(rays, None, occluded=hit)
+        return hit
+
+    def _run(self, rays, best, occluded):
+        o64 = rays.origins.astype(np.float64)
+        d64 = rays.directions.astype(np.float64)
+        seg = _Segments(o64, d64, rays.tmin, rays.tmax)
+        if self._tree is None:
+            per = max(1, min(self.ray_chunk, self.pair_limit // max(1, self._active.size)))
+            for sl in self._chunks(len(rays), per):
+                self._trace_loop(np.arange(sl.start, sl.stop), rays, o64, d64, seg, best, occluded)
+        else:
+            for sl in self._chunks(len(rays), self.ray_chunk):
+                self._trace_pairs(np.arange(sl.start, sl.stop), rays, o64, d64, seg, best, occluded)
+
+    # few instances: a loop over instances, nearest box entry first -----------------------
+    def _trace_loop(self, rid, rays, o64, d64, seg, best, occluded):
+        act = self._active
+        lo, hi = self._lo[act], self._hi[act]
+        # (A, m): where each ray's segment enters each box, and whether it meets it
+        near, touch = seg.enter([x[rid][None] for x in seg.o], [x[rid][None] for x in seg.inv],
+                                [c[:, None] for c in lo.T], [c[:, None] for c in hi.T], seg.tmin[rid], seg.tmax[rid])
+        count = touch.sum(axis=1)
+        mean_entry = np.where(touch, near, 0.0).sum(axis=1) / np.maximum(count, 1)
+        for j in np.lexsort((mean_entry, count == 0)):  # nearest mean entry first
+            if count[j] == 0:
+                break
+            i = act[j]
+            if occluded is not None:
+                sel = np.flatnonzero(touch[j] & ~occluded[rid])
+            else:
+                sel = np.flatnonzero(touch[j] & (near[j] <= best.t[rid]))
+            if sel.size == 0:
+                continue
+            ray = rid[sel]
+            inst = np.full(sel.size, i, np.int32)
+            bottom = self.bottoms[self.instance_bottom[i]]
+            if occluded is not None:
+                occluded[ray] |= self._call_bottom(bottom, ray, inst, rays, o64, d64, rays.tmax[ray], True, single=True)
+            else:
+                tmax_pair = np.minimum(rays.tmax[ray], best.t[ray])
+                h = self._call_bottom(bottom, ray, inst, rays, o64, d64, tmax_pair, False, single=True)
+                best.fold(ray, inst, h, self.tri_base)
+
+    # many instances: candidate pairs from the tree, traced in rounds per bottom --------
+    def _trace_pairs(self, rid, rays, o64, d64, seg, best, occluded):
+        got = self._tree.candidates(rid, seg, self.pair_limit)
+        if got is None:  # too many pairs for one chunk: split it
+            h = len(rid) // 2
+            self._trace_pairs(rid[:h], rays, o64, d64, seg, best, occluded)
+            self._trace_pairs(rid[h:], rays, o64, d64, seg, best, occluded)
+            return
+        ray, leaf, near = got
+        if ray.size == 0:
+            return
+        inst = self._active[leaf]
+        order = np.lexsort((near, ray))  # by ray, then box entry
+        ray, inst, near = ray[order], inst[order], near[order]
+        start = np.ones(ray.size, bool)
+        start[1:] = ray[1:] != ray[:-1]
+        first = np.flatnonzero(start)
+        rank = np.arange(ray.size) - np.repeat(first, np.diff(np.append(first, ray.size)))
+        a, width = 0, 1
+        top = int(rank.max()) + 1
+        while a < top:
+            sel = (rank >= a) & (rank < a + width)
+            if occluded is not None:
+                sel &= ~occluded[ray]
+            else:
+                sel &= near <= best.t[ray]
+            k = np.flatnonzero(sel)
+            a, width = a + width, 2 * width
+            if k.size == 0:
+                continue
+            kb = self.instance_bottom[inst[k]]
+            by = np.argsort(kb, kind="stable")
+            k, kb = k[by], kb[by]
+            cuts = np.flatnonzero(np.diff(kb)) + 1
+            for part in np.split(k, cuts):  # one call per bottom
+                r, i = ray[part], inst[part]
+                bottom = self.bottoms[self.instance_bottom[i[0]]]
+                if occluded is not None:
+                    hit = self._call_bottom(bottom, r, i, rays, o64, d64, rays.tmax[r], True)
+                    occluded[r[hit]] = True
+                else:
+                    tmax_pair = np.minimum(rays.tmax[r], best.t[r])
+                    best.fold(r, i, self._call_bottom(bottom, r, i, rays, o64, d64, tmax_pair, False), self.tri_base)
+
+    def stats(self) -> dict:
+        return {"kind": self.kind, "instances": self.instance_count, "hittable_instances": int(self._active.size),
+                "bottoms": len(self.bottoms), "triangles": self.triangle_count,
+                "top_level": "tree" if self._tree is not None else "loop"}
+
+    def __repr__(self):
+        return (f"<TwoLevel {self.instance_count} instances of {len(self.bottoms)} bottoms, "
+                f"{self.triangle_count} triangles, top level: {'tree' if self._tree is not None else 'loop'}>")
+
+
+def _mul(a, x):
+    """(P, 3) rows ``a @ x`` for one (3, 3) ``a`` or one per row (P, 3, 3), in float64."""
+    out = np.empty_like(x)
+    for k in range(3):
+        out[:, k] = a[..., k, 0] * x[:, 0] + a[..., k, 1] * x[:, 1] + a[..., k, 2] * x[:, 2]
+    return out
+
+
+class _Segments:
+    """A chunk's ray segments for the box tests, in float64 columns: origins, reciprocal
+    directions and [tmin, tmax].
+
+    The slab test (Kay and Kajiya; robust as Ize, JCGT 2013: far widened by 1 + 2 gamma(3))
+    is written out here rather than through ``intersect.slab_interval``, whose per-axis
+    branches for zero components took most of the top level's time.  Instead a zero
+    component (+0.0 or -0.0) gets the reciprocal +-1e308 and tmax is capped at 1e300: an
+    origin inside the slab then gives an interval of about (-1e308, 1e308) and one outside
+    an entry beyond the cap, or inf; no NaN can arise (the differences and reciprocals are
+    finite), and where the cap lets through a box the exact test would not (an origin
+    within 1e-8 of a slab it does not move along), the pair is only traced for nothing.
+    """
+
+    CAP = 1e300
+
+    def __init__(self, o64, d64, tmin, tmax):
+        self.o = [np.ascontiguousarray(o64[:, k]) for k in range(3)]
+        self.inv = [1.0 / np.where(d64[:, k] == 0, np.copysign(1e-308, d64[:, k]), d64[:, k]) for k in range(3)]
+        self.tmin = tmin.astype(np.float64)
+        self.tmax = np.minimum(tmax.astype(np.float64), self.CAP)
+
+    @staticmethod
+    def enter(o, inv, lo, hi, tmin, tmax):
+        """(near, meets): where each segment [tmin, tmax] enters each box (clipped to
+        tmin) and whether it meets the box.  o, inv, lo, hi: three arrays each (x, y, z),
+        broadcasting with tmin and tmax."""
+        near, far = tmin, tmax
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(3):
+                t0 = (lo[k] - o[k]) * inv[k]
+                t1 = (hi[k] - o[k]) * inv[k]
+                near = np.maximum(near, np.minimum(t0, t1))
+                far = np.minimum(far, np.maximum(t0, t1))
+            return near, near <= far + (2 * _GAMMA3) * np.abs(far)
+
+
+def _morton3(q):
+    """30-bit Morton codes of (N, 3) integer coordinates in 0..1023."""
+    q = q.astype(np.uint64)
+    out = np.zeros(len(q), np.uint64)
+    for k in range(3):
+        x = q[:, k]
+        x = (x | (x << np.uint64(16))) & np.uint64(0x030000FF)
+        x = (x | (x << np.uint64(8))) & np.uint64(0x0300F00F)
+        x = (x | (x << np.uint64(4))) & np.uint64(0x030C30C3)
+        x = (x | (x << np.uint64(2))) & np.uint64(0x09249249)
+        out |= x << np.uint64(k)
+    return out
+
+
+class _TopTree:
+    """A complete binary tree over instance boxes in Morton order of their centres.
+
+    Level 0 is the root; level L holds the leaves, one box each (padded to a power of
+    two with empty boxes); a node j of level k has the children 2j and 2j+1 of level
+    k + 1, so the tree is only its levels' boxes.  Built bottom-up, one numpy step a
+    level: O(I) after the O(I log I) sort (the LBVH idea, Lauterbach et al. 2009, with
+    median splits of the sorted order instead of Morton-bit splits)."""
+
+    def __init__(self, lo, hi):
+        n = len(lo)
+        c = (lo + hi) / 2
+        clo, chi = c.min(axis=0), c.max(axis=0)
+        q = np.clip((c - clo) / np.where(chi > clo, chi - clo, 1.0) * 1023, 0, 1023)
+        self.order = np.argsort(_morton3(q), kind="stable").astype(np.int32)
+        size = 1 << max(0, int(np.ceil(np.log2(max(n, 1)))))
+        llo = np.zeros((size, 3))
+        lhi = np.zeros((size, 3))
+        llo[:n], lhi[:n] = lo[self.order], hi[self.order]
+        levels = [(llo, lhi)]
+        while len(levels[-1][0]) > 1:
+            a, b = levels[-1]
+            levels.append((np.minimum(a[0::2], a[1::2]), np.maximum(b[0::2], b[1::2])))
+        self.levels = [(list(np.ascontiguousarray(a.T)), list(np.ascontiguousarray(b.T))) for a, b in levels[::-1]]
+        # nodes of level k holding real boxes: the first ceil(n / 2^(L-k)) (the padding
+        # leaves are at the end); the empty ones are masked by index, not by their boxes
+        depth = len(levels) - 1
+        self.filled = [-(-n // (1 << (depth - k))) for k in range(depth + 1)]
+
+    def candidates(self, rid, seg: "_Segments", limit):
+        """(ray, leaf, near): the pairs whose ray segment [tmin, tmax] meets the leaf's
+        box (leaf = position in the caller's active instances), near = max(box entry,
+        tmin); None when a level would hold more than ``limit`` pairs (and there is more
+        than one ray to split)."""
+        ray = rid.astype(np.int64)
+        node = np.zeros(len(rid), np.int64)
+        last = len(self.levels) - 1
+        for k, (lo, hi) in enumerate(self.levels):
+            near, ok = seg.enter([x.take(ray) for x in seg.o], [x.take(ray) for x in seg.inv],
+                                 [c.take(node) for c in lo], [c.take(node) for c in hi],
+                                 seg.tmin.take(ray), seg.tmax.take(ray))
+            ok &= node < self.filled[k]
+            ray, node, near = ray[ok], node[ok], near[ok]
+            if k == last:
+                break
+            if 2 * ray.size > limit and len(rid) > 1:
+                return None
+            ray = np.repeat(ray, 2)
+            node = (2 * node[:, None] + np.arange(2)).reshape(-1)
+        return ray, self.order[node], near
