@@ -18,7 +18,7 @@ ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
 # This machine's package (the real-Blender suite installs it).
 ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-proximity report docs clean
+.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-frames bench-proximity report docs clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -128,6 +128,12 @@ bench-distributed: $(VENV)/.stamp
 ## Sensor scans: 64 x 2,048 rays per frame over 100 frames of an animated scene vs a scene.ray_cast loop (timing lock held).
 bench-scan: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/bench_scan.py
+
+## Frames at the speed of the trace: per-frame api.scan / api.cast on scenes kept across frames (a static scene with a
+## moving sensor, rigid and deforming motion, a camera flythrough, casts from a moving point, a cast after frame_set)
+## vs a scene.ray_cast loop over the same rays (timing lock held).  BENCH_ARGS=--memory, --scenario NAME, --small ...
+bench-frames: $(VENV)/.stamp
+	flock /tmp/hrc-bench.lock $(PY) scripts/bench_frames.py $(BENCH_ARGS)
 
 ## Closest-point queries: the numpy tree against Blender's BVHTree.find_nearest loop and Open3D on flat grids of
 ## 20k and 1M triangles, and the winding number's tree against its exact sum (timing lock held).
