@@ -11,7 +11,7 @@ from .embree import embree_available
 from .hits import Hits
 from .intersect import prepare_rays
 from .mesh import TriangleMesh
-from .twolevel import InstanceHits, TwoLevel
+from .twolevel import InstanceHits, Split, TwoLevel
 from .objio import load_obj
 from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
 from .rays import camera_rays, hemisphere_rays, quasi_uniform_rays, uniform_rays
@@ -28,6 +28,7 @@ __all__ = [
     "Hits",
     "TriangleMesh",
     "TwoLevel",
+    "Split",
     "InstanceHits",
     "all_hits",
     "build",

@@ -569,3 +569,98 @@ class _TopTree:
             ray = np.repeat(ray, 2)
             node = (2 * node[:, None] + np.arange(2)).reshape(-1)
         return ray, self.order[node], near
+
+
+class Split:
+    """A scene cut in parts: flat structures over the world-space triangles of some
+    instances (``soups``: the instances that stay put, built once while they do; a few
+    small movers, rebuilt when they move), and a ``TwoLevel`` over the rest (``moving``, or
+    None).  A scene whose few objects move rigidly keeps the fast flat trace for everything
+    else and pays per frame only for what moved.
+
+    soups: a list of (Accel over a world-space ``TriangleMesh``, global (Ts,) int64,
+    instance (Ts,) int32, local (Ts,) int32): per soup triangle its global index, instance
+    and triangle of the instance's bottom mesh (a soup holds whole instances, in increasing
+    global order); moving_instances: (I_moving,) the instance number each of ``moving``'s
+    instances reports.  Hits are ``InstanceHits`` as ``TwoLevel``'s, plus ``soup`` (M,)
+    int32, the soup a hit came from (-1: from ``moving`` or none), ``soup_triangle`` (M,)
+    its triangle in that soup and ``soups`` (the soups' structures): a soup's u, v are its
+    triangles' as a flat scene lays them out (mirrored corners swapped).  An exact tie in
+    t between parts goes to the lower global triangle.
+    """
+
+    kind = "twolevel"
+
+    def __init__(self, soups, moving=None, moving_instances=None):
+        self.soups = [(acc, np.asarray(g, np.int64), np.asarray(i, np.int32), np.asarray(loc, np.int32))
+                      for acc, g, i, loc in soups]
+        for acc, g, i, loc in self.soups:
+            if not (len(g) == len(i) == len(loc)):
+                raise ValueError("a soup's global, instance and local arrays must have one entry per triangle")
+        self.moving = moving
+        self.moving_instances = None if moving_instances is None else np.asarray(moving_instances, np.int32)
+        self.triangle_count = sum(len(g) for _, g, _, _ in self.soups) + (
+            moving.triangle_count if moving is not None else 0)
+
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> InstanceHits:
+        o32 = np.asarray(origins, np.float32)
+        d32 = np.asarray(directions, np.float32)
+        m = max(len(o32) if o32.ndim == 2 else 1, len(d32) if d32.ndim == 2 else 1)
+        out = InstanceHits.empty(m, np.int64)
+        out.soup = np.full(m, -1, np.int32)
+        out.soup_triangle = np.full(m, -1, np.int64)
+        out.soups = [acc for acc, _, _, _ in self.soups]
+        lo = np.broadcast_to(np.asarray(tmin, np.float64), (m,))
+        hi = np.broadcast_to(np.asarray(tmax, np.float64), (m,)).copy()
+        for si, (acc, glob, inst, local) in enumerate(self.soups):
+            h = acc.trace(o32, d32, lo, np.maximum(hi, lo))
+            got = h.triangle >= 0
+            k = h.triangle[got]
+            g = glob[k]
+            cur_t, cur_g = out.t[got], out.triangle[got]
+            take_k = (cur_g < 0) | (h.t[got] < cur_t) | ((h.t[got] == cur_t) & (g < cur_g))
+            rows = np.flatnonzero(got)[take_k]
+            k = k[take_k]
+            out.t[rows] = h.t[rows]
+            out.triangle[rows] = glob[k]
+            out.u[rows], out.v[rows] = h.u[rows], h.v[rows]
+            out.instance[rows] = inst[k]
+            out.local_triangle[rows] = local[k]
+            out.soup[rows] = si
+            out.soup_triangle[rows] = k
+            hi[rows] = np.minimum(hi[rows], out.t[rows])
+        if self.moving is None or m == 0:
+            return out
+        o64 = np.broadcast_to(o32.astype(np.float64), (m, 3))
+        d64 = np.broadcast_to(d32.astype(np.float64), (m, 3))
+        hm = self.moving.trace(o64, d64, lo, np.maximum(hi, lo))
+        mg = hm.triangle >= 0
+        take = mg & ((out.triangle < 0) | (hm.t < out.t) | ((hm.t == out.t) & (hm.triangle.astype(np.int64) < out.triangle)))
+        out.t[take] = hm.t[take]
+        out.triangle[take] = hm.triangle[take]
+        out.u[take], out.v[take] = hm.u[take], hm.v[take]
+        out.instance[take] = hm.instance[take] if self.moving_instances is None \
+            else self.moving_instances[hm.instance[take]]
+        out.local_triangle[take] = hm.local_triangle[take]
+        out.soup[take] = -1
+        out.soup_triangle[take] = -1
+        return out
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        o = np.asarray(origins, np.float32)
+        d = np.asarray(directions, np.float32)
+        m = max(len(o) if o.ndim == 2 else 1, len(d) if d.ndim == 2 else 1)
+        lo = np.broadcast_to(np.asarray(tmin, np.float64), (m,))
+        hi = np.broadcast_to(np.asarray(tmax, np.float64), (m,))
+        hit = np.zeros(m, bool)
+        parts = [acc for acc, _, _, _ in self.soups] + ([self.moving] if self.moving is not None else [])
+        for acc in parts:
+            rest = np.flatnonzero(~hit)
+            if not len(rest):
+                break
+            hit[rest] = acc.occluded(o if o.ndim == 1 else o[rest], d if d.ndim == 1 else d[rest], lo[rest], hi[rest])
+        return hit
+
+    def __repr__(self):
+        soups = ", ".join(f"{acc.kind} over {len(g):,}" for acc, g, _, _ in self.soups)
+        return f"Split(soups=[{soups}], moving={self.moving!r})"

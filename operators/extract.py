@@ -536,6 +536,31 @@ class Layout:
             return np.zeros(3, np.float32), np.zeros(3, np.float32)
         return lo, hi
 
+    def soup(self, placements) -> tuple:
+        """(world-space ``TriangleMesh``, global (Ts,) int64, instance (Ts,) int32, local
+        (Ts,) int32) of the given placements' triangles, laid out and rounded as ``flat()``
+        lays them (float32 products, mirrored corners swapped), in increasing global order."""
+        placements = np.sort(np.asarray(placements, np.int64))
+        verts, tris, glob, inst, local = [], [], [], [], []
+        v0 = 0
+        for i in placements.tolist():
+            g = self.groups[self.placement_group[i]]
+            m = self.matrices[i].T.astype(np.float32)  # column-major, as _assemble reads it
+            verts.append(g.co @ m[:3, :3] + m[3, :3])
+            t = g.tris + v0
+            if np.linalg.det(self.matrices[i, :3, :3]) < 0:
+                t = t[:, [0, 2, 1]]
+            tris.append(t)
+            n = len(g.tris)
+            glob.append(self.tri_base[i] + np.arange(n, dtype=np.int64))
+            inst.append(np.full(n, i, np.int32))
+            local.append(np.arange(n, dtype=np.int32))
+            v0 += len(g.co)
+        if not tris:
+            return None
+        mesh = TriangleMesh(np.concatenate(verts).astype(np.float32), np.concatenate(tris).astype(np.int32))
+        return mesh, np.concatenate(glob), np.concatenate(inst), np.concatenate(local)
+
     def pools(self):
         """What a hit on (placement, local triangle) needs without the flat mesh, made once:
         (poly_pool (sum T,) int32 the groups' polygon indices end to end, normal_pool
@@ -872,15 +897,16 @@ def _assemble(groups, names, progress=None, entry_obj=None, attributes=()) -> Tr
 
 # -- summary ----------------------------------------------------------------------------
 
-def scene_summary(depsgraph, mesh: TriangleMesh, elapsed: float) -> dict:
+def scene_summary(depsgraph, mesh: TriangleMesh, elapsed: float, bounds: bool = True) -> dict:
     """A small dict for reports and the UI: what was extracted and how long it took.
 
     objects: top-level objects that contributed triangles (an instancer counts once);
     sources: entries of ``object_names``; instances: placements made by instancing
     (collection, particle, geometry nodes), not counting objects' own geometry;
-    bounds: [lo, hi] of the triangles' vertices; extraction_seconds: ``elapsed``.
+    bounds: [lo, hi] of the triangles' vertices (left out with ``bounds=False``: a pass
+    over every placed vertex, which the session makes only when asked);
+    extraction_seconds: ``elapsed``.
     """
-    lo, hi = mesh.bounds()
     info = getattr(mesh, "source_info", None)
     if info is not None:
         objects = info.root_objects
@@ -896,6 +922,5 @@ def scene_summary(depsgraph, mesh: TriangleMesh, elapsed: float) -> dict:
         "instances": instances,
         "triangles": mesh.triangle_count,
         "vertices": int(mesh.vertex_count if hasattr(mesh, "vertex_count") else len(mesh.vertices)),
-        "bounds": [lo.tolist(), hi.tolist()],
         "extraction_seconds": float(elapsed),
-    }
+    } | ({"bounds": [x.tolist() for x in mesh.bounds()]} if bounds else {})

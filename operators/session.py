@@ -154,7 +154,7 @@ def _extract_layout(depsgraph, *, selected_only=False, progress=None, attributes
         raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them")
     if progress is not None:
         progress(1.0)
-    return layout, scene_summary(depsgraph, layout, time.perf_counter() - t0)
+    return layout, scene_summary(depsgraph, layout, time.perf_counter() - t0, bounds=False)
 
 
 # -- the session ---------------------------------------------------------------------------
@@ -165,6 +165,11 @@ MESHES: dict = {}
 #: (mesh key, kind, config items) -> the bottom-level structure over that mesh in object
 #: space: built once, shared by every session (frame) that places the mesh
 BOTTOMS: dict = {}
+#: (kind, config items, the still placements' identities) -> (flat structure over their world
+#: triangles, global, instance, local per triangle): the part of a changing scene that stays put
+SOUPS: dict = {}
+#: soups kept (a few: the scenes and kinds in use)
+SOUPS_KEPT = 4
 #: the timings of the last call, per session: what the call paid for
 TIMING_KEYS = ("extract", "bottom_builds", "top_level", "trace")
 
@@ -180,7 +185,7 @@ class Session:
     head: tuple
     body: tuple
     layout: object
-    summary: dict
+    _summary: dict
     attributes: frozenset = frozenset()
     #: (kind, sorted config items) -> Accel
     structures: dict = field(default_factory=dict)
@@ -197,6 +202,8 @@ class Session:
     kinds: tuple = ()
     #: whether this session replaced an earlier one of the same scene (the scene changes between calls)
     changed: bool = False
+    #: (I,) bool: placements the previous session had too, with the same mesh and matrix
+    still: object = None
     #: seconds the last call paid: extraction, bottom builds, top level, trace (``TIMING_KEYS``)
     timings: dict = field(default_factory=lambda: dict.fromkeys(TIMING_KEYS, 0.0))
     #: per triangle, the world-space unit geometric normal (float32), made on first use
@@ -210,30 +217,77 @@ class Session:
         """The flat world-space ``TriangleMesh`` (``extract.Layout.flat``)."""
         return self.layout.flat()
 
-    def tracer(self, kind: str, **config):
-        """What traces with ``kind``: the flat structure while the scene has not changed
-        since its first call, else a two-level scene (``core.TwoLevel``) of one bottom level
-        per unique mesh, each built once over the mesh in object space and shared by every
-        session that places it, under a top level over this session's placements.
+    @property
+    def summary(self) -> dict:
+        """``extract.scene_summary`` of the extraction, its bounds made on first use."""
+        if "bounds" not in self._summary:
+            self._summary["bounds"] = [x.tolist() for x in self.layout.bounds()]
+        return self._summary
 
-        The line between them is the structures' life (the paper's decision over it): a
-        scene that stays put keeps its first session, where one flat structure traces
-        fastest (the top level costs per ray; BENCHMARKS.md, "Two-level scenes"); a scene
-        that changes between calls would build a flat structure for every change, where
-        the two-level one only places its bottoms again."""
+    def tracer(self, kind: str, rays=None, **config):
+        """What traces with ``kind``: the flat structure while the scene has not changed
+        since its first call; after a change, a ``core.Split``: a flat structure over the
+        placements that stayed put (built once while they do, shared by the sessions that
+        follow), the moved ones either as a flat structure rebuilt now or on two levels
+        (``core.TwoLevel``: one bottom level per unique mesh, built once in object space,
+        under a top level over their placements).
+
+        The lines between them are the paper's decision on each structure's life: a scene
+        that stays put keeps its first session, where one flat structure traces fastest (a
+        top level costs per ray; BENCHMARKS.md, "Two-level scenes"); what moved is rebuilt
+        flat when it has fewer triangles than the call has rays (``rays``: the build, linear
+        in triangles, costs less than the top level, linear in rays), else placed on two
+        levels, which builds nothing but the top level."""
         if not self.changed:
             return self.structure(kind, **config)
-        k = ("twolevel", kind, tuple(sorted(config.items())))
+        cfg = tuple(sorted(config.items()))
+        k = ("twolevel", kind, cfg)
         acc = self.structures.get(k)
         if acc is None:
-            t0 = time.perf_counter()
-            bottoms = [self._bottom(g, kind, config) for g in self.layout.groups]
-            t1 = time.perf_counter()
             lay = self.layout
-            acc = self.structures[k] = core.TwoLevel(bottoms, lay.placement_group, lay.matrices, lay.tri_base)
+            still = self.still if self.still is not None else np.zeros(len(lay.placement_group), bool)
+            moving = np.flatnonzero(~still)
+            t0 = time.perf_counter()
+            soups = [self._soup(kind, config, np.flatnonzero(still))] if still.any() else []
+            moved_tris = int(sum(len(lay.groups[g].tris) for g in lay.placement_group[moving].tolist()))
+            two = None
+            if len(moving) and rays is not None and moved_tris <= rays:
+                mesh, glob, inst, local = lay.soup(moving)
+                soups.append((core.build(mesh.prepare(), kind, **config), glob, inst, local))
+                moving = moving[:0]
+            t1 = time.perf_counter()
+            if len(moving):
+                groups = np.unique(lay.placement_group[moving])
+                bottoms = {int(gi): self._bottom(lay.groups[gi], kind, config) for gi in groups.tolist()}
+                t1 = time.perf_counter()
+                order = {gi: n for n, gi in enumerate(bottoms)}
+                two = core.TwoLevel([bottoms[gi] for gi in order],
+                                    np.array([order[int(g)] for g in lay.placement_group[moving]], np.int32),
+                                    lay.matrices[moving], lay.tri_base[moving])
+            acc = self.structures[k] = core.Split([s for s in soups if s is not None], moving=two,
+                                                  moving_instances=moving if two is not None else None)
             self.timings["bottom_builds"] += t1 - t0
             self.timings["top_level"] += time.perf_counter() - t1
         return acc
+
+    def _soup(self, kind, config, placements):
+        """The flat structure over the still placements' world triangles, shared by the
+        sessions of a scene while the same placements stay put."""
+        lay = self.layout
+        ident = tuple((lay.groups[lay.placement_group[i]].key, lay.matrices[i].tobytes(), int(lay.tri_base[i]))
+                      for i in placements.tolist())
+        key = (kind, tuple(sorted(config.items())), ident)
+        got = SOUPS.pop(key, None)
+        if got is None:
+            made = lay.soup(placements)
+            if made is None:
+                return None
+            mesh, glob, inst, local = made
+            got = (core.build(mesh.prepare(), kind, **config), glob, inst, local)
+        SOUPS[key] = got  # the newest last
+        while len(SOUPS) > SOUPS_KEPT:
+            SOUPS.pop(next(iter(SOUPS)))
+        return got
 
     @staticmethod
     def _bottom(g, kind, config):
@@ -249,24 +303,49 @@ class Session:
     def decode(self, h):
         """Per-hit (object index, instance index, polygon index, unit world normal, u, v)
         of a two-level trace's ``core.InstanceHits``, without the flat mesh: the normal is
-        the object-space one turned by the inverse transpose of the instance's matrix, and
-        a mirrored instance's u and v trade places (the flat mesh swaps two corners there)."""
+        the object-space one turned by the inverse transpose of the instance's matrix (a
+        soup's triangles have theirs in world space already), and a mirrored instance's u
+        and v trade places (the flat mesh swaps two corners there)."""
         poly_pool, normal_pool, base, inv, mirrored = self.layout.pools()
-        inst = h.instance
-        got = inst >= 0
-        i = np.where(got, inst, 0)
-        at = base[i] + np.where(got, h.local_triangle, 0)
-        obj = np.where(got, self.layout.instances.instance_object[i], -1).astype(np.int32)
-        poly = np.where(got, poly_pool[at] if len(poly_pool) else -1, -1).astype(np.int32)
-        n = np.einsum("mj,mjk->mk", normal_pool[at].astype(np.float64), inv[i]) if len(normal_pool) \
-            else np.zeros((len(inst), 3))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-        n[~got] = np.nan
-        swap = got & mirrored[i]
-        u = np.where(swap, h.v, h.u)
-        v = np.where(swap, h.u, h.v)
-        return obj, np.where(got, inst, -1).astype(np.int32), poly, n.astype(np.float32), u, v
+        m = len(h.instance)
+        obj = np.full(m, -1, np.int32)
+        ins = np.full(m, -1, np.int32)
+        poly = np.full(m, -1, np.int32)
+        n = np.full((m, 3), np.nan, np.float32)
+        u, v = h.u.copy(), h.v.copy()
+        got = np.flatnonzero(h.instance >= 0)
+        i = h.instance[got]
+        at = base[i] + h.local_triangle[got]
+        obj[got] = self.layout.instances.instance_object[i]
+        ins[got] = i
+        poly[got] = poly_pool[at]
+        soup = getattr(h, "soup", None)
+        flat = np.zeros(len(got), bool) if soup is None else soup[got] >= 0
+        if flat.any():  # a soup's world normals, made once with it
+            rows = got[flat]
+            for si in np.flatnonzero(np.bincount(soup[rows], minlength=len(h.soups))).tolist():
+                r = rows[soup[rows] == si]
+                n[r] = self._soup_normals(h.soups[si])[h.soup_triangle[r]]
+        rest = ~flat
+        if rest.any():
+            g, ir = got[rest], i[rest]
+            w = np.einsum("mj,mjk->mk", normal_pool[at[rest]].astype(np.float64), inv[ir])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w /= np.linalg.norm(w, axis=1, keepdims=True)
+            n[g] = w
+            swap = g[mirrored[ir]]
+            u[swap], v[swap] = h.v[swap], h.u[swap]
+        return obj, ins, poly, n, u, v
+
+    @staticmethod
+    def _soup_normals(soup):
+        """(Ts, 3) float32 unit world normals of a soup's triangles (as ``triangle_normals``)."""
+        if getattr(soup, "_normals", None) is None:
+            tv = soup.mesh.tri_vertices.astype(np.float64)
+            nn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                soup._normals = (nn / np.linalg.norm(nn, axis=1, keepdims=True)).astype(np.float32)
+        return soup._normals
 
     def decode_materials(self, h) -> np.ndarray:
         """(M,) int32 material index (into ``material_tables()[0]``) of two-level hits."""
@@ -366,7 +445,7 @@ class Session:
         ``core.InstanceHits``, decoded by ``decode``) wherever the flat mesh is not needed
         (the first plan of a scene traces flat).
         """
-        pick = self.structure if flat else self.tracer
+        pick = self.structure if flat else (lambda kind, **c: self.tracer(kind, rays=budget, **c))
         if structure != "auto":
             acc = pick("grid", **grid_config) if structure == "grid" else pick(structure)
             t0 = time.perf_counter()
@@ -456,17 +535,29 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
         old.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         if not want <= old.attributes:
             _add_attributes(old, depsgraph, selected_only, want | old.attributes)
-        old.summary["frame"] = depsgraph.scene.frame_current
+        old._summary["frame"] = depsgraph.scene.frame_current
         return old
     t0 = time.perf_counter()
     layout, summary = _extract_layout(depsgraph, selected_only=selected_only, progress=progress,
                                       attributes=tuple(want))
     s = Session(key, head, body, layout, summary, want, changed=old is not None)
+    if old is not None:
+        s.still = _still(layout, old.layout)
     s.timings["extract"] = time.perf_counter() - t0
     s.inherit(old)
     SESSIONS[key] = s
     _prune()
     return s
+
+
+def _placement_ids(layout) -> list:
+    return [(layout.groups[g].key, m.tobytes()) for g, m in zip(layout.placement_group.tolist(), layout.matrices)]
+
+
+def _still(layout, before) -> np.ndarray:
+    """(I,) bool: the placements ``before`` had as well (the same mesh key and matrix)."""
+    seen = set(_placement_ids(before))
+    return np.array([p in seen and p[0] is not None for p in _placement_ids(layout)], bool)
 
 
 def _prune():
@@ -575,6 +666,7 @@ def clear():
     SESSIONS.clear()
     MESHES.clear()
     BOTTOMS.clear()
+    SOUPS.clear()
     ANALYSED.clear()
     EDITS.clear()
 

@@ -157,8 +157,10 @@ def _placements():
     return obs
 
 
+@pytest.mark.parametrize("movers", ["flat", "two-level"])
+@pytest.mark.parametrize("moved", ["one", "all"])
 @pytest.mark.parametrize("kind", ["grid", "bvh", "embree"])
-def test_two_level_hits_give_every_field_of_a_fresh_flat_extraction(fresh, addon, kind):
+def test_two_level_hits_give_every_field_of_a_fresh_flat_extraction(fresh, addon, kind, moved, movers):
     """After a change (the session traces two levels) every field equals the flat reference:
     the float64 brute force over a fresh world-space extraction, with its per-triangle
     tables (normals from the world triangle, so the inverse transpose and mirrors are checked)."""
@@ -170,12 +172,21 @@ def test_two_level_hits_give_every_field_of_a_fresh_flat_extraction(fresh, addon
     o = np.stack([rng.uniform(-6, 6, 3000), rng.uniform(-6, 6, 3000), np.full(3000, 8.0)], axis=1)
     d = np.stack([rng.uniform(-0.4, 0.4, 3000), rng.uniform(-0.4, 0.4, 3000), -np.ones(3000)], axis=1)
     addon.api.cast(o, d, structure=kind, materials=True)  # the first session traces flat
-    obs[1].location.x += 0.25  # a change: the next session traces two levels
-    r = addon.api.cast(o, d, structure=kind, materials=True)
+    # a change: the next session traces the still placements flat and the moved ones on two levels
+    for ob in (obs[1:2] if moved == "one" else bpy.context.scene.objects):
+        if ob.parent is None:
+            ob.location.x += 0.25
+    # the movers are rebuilt flat when they have fewer triangles than the call has rays
+    budget = 1 if movers == "two-level" else None
+    r = addon.api.cast(o, d, structure=kind, materials=True, expected_rays=budget)
     dg = bpy.context.evaluated_depsgraph_get()
     s = session.get(dg)
-    assert s.changed and isinstance(s.tracer(kind, **({"density": float(bpy.context.scene.hybrid_raycast.grid_density)}
-                                                      if kind == "grid" else {})), core.TwoLevel)
+    tracer = s.tracer(kind, **({"density": float(bpy.context.scene.hybrid_raycast.grid_density)}
+                               if kind == "grid" else {}))
+    assert s.changed and s.still.sum() == (s.still.size - 1 if moved == "one" else 0)
+    assert isinstance(tracer, core.Split), tracer
+    assert (tracer.moving is not None) == (movers == "two-level"), tracer
+    assert len(tracer.soups) == (moved == "one") + (movers == "flat"), tracer
     mesh = ext.scene_mesh(dg, attributes=("material",))
     ref = core.build(mesh, "brute").trace(o, d)
     assert np.array_equal(r.hit, ref.hit), f"hit differs on {np.flatnonzero(r.hit != ref.hit)[:10]}"
