@@ -468,8 +468,36 @@ def scene_layout(depsgraph, *, selected_only: bool = False, view_layer=None, pro
         raise NoGeometryError(
             f"no {what}visible, render-enabled object in scene '{scene}' (view layer '{vl.name}') has triangles"
         )
+    left_out = _leave_out_non_finite(groups, names)
+    groups = [g for g in groups if len(g.tris)]
+    if not groups:
+        raise ValueError("every triangle has a NaN or infinite vertex coordinate")
     info.seconds = time.perf_counter() - t0
-    return Layout(groups, names, entry_obj, info, attributes)
+    layout = Layout(groups, names, entry_obj, info, attributes)
+    layout.left_out = left_out
+    return layout
+
+
+def _leave_out_non_finite(groups, names) -> list:
+    """Leave out the triangles with a NaN or infinite corner (a modifier or geometry nodes
+    can make them), as Blender's ``scene.ray_cast`` does: [(source names, triangles left
+    out over every placement)] of the meshes that had any.  Such a mesh is not kept for
+    later calls in this form: its group loses its cache key."""
+    out = []
+    for g in groups:
+        ok = np.isfinite(g.co).all(axis=1)
+        if ok.all():
+            continue
+        keep = ok[g.tris].all(axis=1)
+        g.co = np.where(ok[:, None], g.co, np.float32(0.0))  # no triangle uses them any more
+        g.tris, g.poly = g.tris[keep], g.poly[keep]
+        g.normals = g.normals[keep] if g.normals is not None else None
+        g.uvs = g.uvs[keep] if g.uvs is not None else None
+        g.slots = g.slots[keep] if g.slots is not None else None
+        g.read, g.key = None, None
+        sources = sorted({names[e] for e in g.entries})
+        out.append((sources, int((~keep).sum()) * len(g.where)))
+    return out
 
 
 class Layout:
@@ -499,6 +527,8 @@ class Layout:
         objects, entry_object = _hit_objects(names, entry_obj)
         self.instances = InstanceTable(objects, entry_object, self.matrices, entry_object[entries])
         self._flat = self._pools = self._materials = None
+        #: [(source names, triangles left out)] of meshes with NaN or infinite vertices
+        self.left_out = []
 
     def flat(self, progress=None) -> TriangleMesh:
         if self._flat is None:

@@ -208,7 +208,7 @@ class _Call:
     """What every query shares: checked arguments, the session, the decision inputs."""
 
     def __init__(self, origins, directions, tmin, tmax, *, depsgraph, expected_rays, selected_only, samples,
-                 structure, attributes=()):
+                 structure, attributes=(), strict=False):
         import bpy
 
         from . import session
@@ -238,7 +238,8 @@ class _Call:
             session.check_depsgraph(depsgraph)
             depsgraph.update()
         props = depsgraph.scene.hybrid_raycast
-        self.session = session.get(depsgraph, props, selected_only=bool(selected_only), attributes=attributes)
+        self.session = session.get(depsgraph, props, selected_only=bool(selected_only), attributes=attributes,
+                                   strict=bool(strict))
         s = self.session
         self.samples = samples or props.sample_rays
         self.grid_config = {"density": float(props.grid_density)}
@@ -313,7 +314,8 @@ def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
 
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
          selected_only: bool = False, samples: int | None = None, structure: str = "auto",
-         smooth: bool = False, uv: bool = False, materials: bool = False, progress=None) -> CastResult:
+         smooth: bool = False, uv: bool = False, materials: bool = False, progress=None,
+         strict: bool = False) -> CastResult:
     """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
 
     origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
@@ -328,12 +330,16 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     materials: also return each hit's material (``material_index``, ``materials``,
         ``material_names``); the first such cast of a session reads the meshes' slots once.
     progress: called as progress(rays_done, rays_total) after each chunk.
+    strict: raise InvalidGeometry when an object has NaN or infinite vertex coordinates;
+        by default its bad triangles are left out with one ``RuntimeWarning`` naming the
+        object and the count, and the rest is traced (as ``scene.ray_cast`` does).
     Raises TypeError/ValueError naming the argument for bad input, and the operators'
     NoGeometry / InvalidGeometry (``operators.jobs``) for a scene without usable triangles.
     """
     attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ()) + (("material",) if materials else ())
     call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
-                 selected_only=selected_only, samples=samples, structure=structure, attributes=attributes)
+                 selected_only=selected_only, samples=samples, structure=structure, attributes=attributes,
+                 strict=strict)
     s, m = call.session, call.m
     objects, names = s.tables()
     inst = s.mesh.instances if (smooth or uv) else s.layout.instances
@@ -398,11 +404,11 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
 
 def occluded(origins, directions, *, tmin=0.0, tmax=np.inf, depsgraph=None, expected_rays=None,
              selected_only: bool = False, samples: int | None = None, structure: str = "auto",
-             progress=None) -> np.ndarray:
+             progress=None, strict: bool = False) -> np.ndarray:
     """(M,) bool: True where any triangle is hit with tmin < t <= tmax (line of sight,
     shadows: stops at the first hit found).  Arguments as ``cast``."""
     call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
-                 selected_only=selected_only, samples=samples, structure=structure)
+                 selected_only=selected_only, samples=samples, structure=structure, strict=strict)
     out = np.empty(call.m, bool)
     for a, b in call.chunks(progress):
         out[a:b] = call.query(call.rays(a, b), any_hit=True, flat=False)[0]
@@ -410,14 +416,14 @@ def occluded(origins, directions, *, tmin=0.0, tmax=np.inf, depsgraph=None, expe
 
 
 def cast_all(origins, directions, *, max_hits: int = 16, tmin=0.0, tmax=np.inf, depsgraph=None,
-             selected_only: bool = False, structure: str = "auto", progress=None) -> AllHits:
+             selected_only: bool = False, structure: str = "auto", progress=None, strict: bool = False) -> AllHits:
     """Every hit along each ray, nearest first, at most ``max_hits`` per ray, as flat
     arrays sorted by ray then t (``AllHits``).  Hits at one point (a shared edge or vertex)
     count once (``core.all_hits``).  Traces with the session's structure ('auto': the one
     its casts use, or the grid before any; planning needs a nearest-hit cast)."""
     max_hits = _positive_int(max_hits, "max_hits", allow_none=False)
     call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=None,
-                 selected_only=selected_only, samples=None, structure=structure)
+                 selected_only=selected_only, samples=None, structure=structure, strict=strict)
     s = call.session
     kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
     acc = s.structure(kind, **(call.grid_config if kind == "grid" else {}))

@@ -37,6 +37,7 @@ the add-on's own writes (the AO bake's colour attribute) are adopted by
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import bpy
@@ -148,13 +149,24 @@ def _extract_layout(depsgraph, *, selected_only=False, progress=None, attributes
                               cache=MESHES, edits=EDITS)
     except NoGeometryError as e:
         raise NoGeometry(f"no geometry: {e}") from None
-    if not all(np.isfinite(g.co).all() for g in layout.groups):
-        bad = _non_finite_objects(depsgraph)
-        names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5]) or "an evaluated mesh"
-        raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them")
+    except ValueError:  # every triangle had a NaN or infinite corner
+        raise InvalidGeometry(_invalid_message(depsgraph)) from None
     if progress is not None:
         progress(1.0)
     return layout, scene_summary(depsgraph, layout, time.perf_counter() - t0, bounds=False)
+
+
+def _invalid_message(depsgraph) -> str:
+    bad = _non_finite_objects(depsgraph)
+    names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5]) or "an evaluated mesh"
+    return f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them"
+
+
+def left_out_message(left_out) -> str:
+    """One line naming the sources whose NaN or infinite triangles were left out, and how many."""
+    parts = [f"{', '.join(repr(n) for n in names)}: {count:,} triangles" for names, count in left_out[:5]]
+    more = f" and {len(left_out) - 5} more meshes" if len(left_out) > 5 else ""
+    return f"left out triangles with NaN or infinite vertex coordinates ({'; '.join(parts)}{more})"
 
 
 # -- the session ---------------------------------------------------------------------------
@@ -518,13 +530,15 @@ def session_key(depsgraph, selected_only: bool) -> tuple:
     return depsgraph.scene.as_pointer(), depsgraph.view_layer.as_pointer(), bool(selected_only)
 
 
-def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress=None) -> Session:
+def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress=None, strict=True) -> Session:
     """The session of ``depsgraph`` (evaluated; see ``evaluated``), extracting again
     unless the stored one has the same fingerprint.  ``settings``: a
     ``scene.hybrid_raycast`` (default the depsgraph scene's) for selected-only.
     ``attributes``: per-corner or per-triangle data the caller needs ('normal', 'uv',
     'material'), read once.
-    Nothing is stored when extraction fails."""
+    Triangles with a NaN or infinite corner are left out (``Session.left_out`` says whose,
+    and ``warnings.warn`` once per extraction); ``strict`` (the default, for the operators)
+    raises InvalidGeometry naming them instead.  Nothing is stored when extraction fails."""
     check_depsgraph(depsgraph)
     selected_only, _ = _settings(depsgraph, settings, selected_only, None)
     head, body = fingerprint(depsgraph, selected_only)
@@ -532,6 +546,8 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     want = frozenset(attributes)
     old = SESSIONS.get(key)
     if old is not None and old.head == head and old.body == body:
+        if strict and old.layout.left_out:
+            raise InvalidGeometry(_invalid_message(depsgraph))
         old.timings = dict.fromkeys(TIMING_KEYS, 0.0)
         if not want <= old.attributes:
             _add_attributes(old, depsgraph, selected_only, want | old.attributes)
@@ -540,6 +556,10 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     t0 = time.perf_counter()
     layout, summary = _extract_layout(depsgraph, selected_only=selected_only, progress=progress,
                                       attributes=tuple(want))
+    if layout.left_out:
+        if strict:
+            raise InvalidGeometry(_invalid_message(depsgraph))
+        warnings.warn(left_out_message(layout.left_out), RuntimeWarning, stacklevel=3)
     s = Session(key, head, body, layout, summary, want, changed=old is not None)
     if old is not None:
         s.still = _still(layout, old.layout)

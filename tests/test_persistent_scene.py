@@ -208,3 +208,23 @@ def test_two_level_hits_give_every_field_of_a_fresh_flat_extraction(fresh, addon
     ours = np.append(r.material_names, "")[r.material_index[h & same]]
     assert np.array_equal(ours, names[inst.triangle_material[k]]), "materials differ from the flat extraction's"
     assert np.allclose(r.instance_matrices, inst.matrices)
+
+
+def test_nan_vertices_in_one_object_leave_out_its_bad_triangles_with_one_warning(fresh, addon):
+    from blender_scenes import make_nan
+
+    add_cube("Fine", 1.0, (0.0, 0.0, 0.0))
+    broken = add_cube("Broken", 1.0, (3.0, 0.0, 0.0))
+    make_nan(broken)  # vertex 0: the three faces around it lose their triangles that use it
+    bpy.context.view_layer.update()
+    o = np.array([[0.0, 0.0, 5.0], [3.0, 0.0, 5.0], [3.0, 0.0, -5.0]])
+    d = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    with pytest.warns(RuntimeWarning, match=r"'Broken': \d+ triangles"):
+        r = addon.api.cast(o, d)
+    assert r.hit[0] and r.object_names[r.object_index[0]] == "Fine"
+    assert r.hit[1] and r.object_names[r.object_index[1]] == "Broken", "the broken cube's good top face is traced"
+    assert np.isclose(r.t[1], 4.5)
+    with pytest.raises(addon.operators.jobs.InvalidGeometry, match="'Broken'"):
+        addon.api.cast(o, d, strict=True)
+    mesh = addon.operators.extract.scene_layout(bpy.context.evaluated_depsgraph_get())
+    assert mesh.left_out and mesh.left_out[0][0] == ["Broken"] and 0 < mesh.left_out[0][1] < 12
