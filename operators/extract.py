@@ -443,6 +443,8 @@ def scene_mesh(depsgraph, *, selected_only: bool = False, view_layer=None, progr
     attributes: also read 'normal' (corner normals) and/or 'uv' (the active UV map) of
         every triangle corner, and/or 'material' (each triangle's material), into
         ``mesh.instances`` (costs a read per mesh and memory).
+    Triangles with a NaN or infinite corner are left out (``scene_layout(...).left_out``
+    says whose); a ValueError when every triangle has one.
     Raises NoGeometryError when nothing visible has a triangle.
     """
     return scene_layout(depsgraph, selected_only=selected_only, view_layer=view_layer, progress=progress,

@@ -45,7 +45,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from .. import core
-from .extract import NoGeometryError, scene_layout, scene_mesh, scene_summary
+from .extract import NoGeometryError, scene_layout, scene_summary
 from .jobs import InvalidGeometry, NoGeometry
 
 #: (scene pointer, view layer pointer, selected_only) -> Session
@@ -128,7 +128,10 @@ def extract(depsgraph, *, selected_only=False, progress=None, attributes=()):
     with a one-line reason when there is nothing usable."""
     t0 = time.perf_counter()
     try:
-        mesh = scene_mesh(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes)
+        layout = scene_layout(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes)
+        if layout.left_out:
+            raise InvalidGeometry(_invalid_message(depsgraph))
+        mesh = layout.flat(progress)
     except NoGeometryError as e:
         raise NoGeometry(f"no geometry: {e}") from None
     except ValueError as e:
