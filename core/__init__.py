@@ -13,7 +13,7 @@ from .intersect import prepare_rays
 from .mesh import TriangleMesh
 from .twolevel import InstanceHits, Split, TwoLevel
 from .objio import load_obj
-from .meshio import SceneFile, SceneFileError, load_mesh, read_scene, save_mesh
+from .meshio import InstancedScene, SceneFile, SceneFileError, load_mesh, read_scene, save_mesh, save_scene
 from .rays import camera_rays, hemisphere_rays, quasi_uniform_rays, uniform_rays
 from . import decide
 from .decide import Calibration, CalibrationError, calibrate, load_or_default, measure_break_even, measure_break_evens
@@ -50,6 +50,8 @@ __all__ = [
     "load_mesh",
     "read_scene",
     "save_mesh",
+    "save_scene",
+    "InstancedScene",
     "SceneFile",
     "SceneFileError",
     "distributed",

@@ -3,10 +3,21 @@
 ``trace(path, origins, directions)`` takes (M, 3) dask arrays chunked by rows and returns
 dask arrays ``t``, ``triangle``, ``u``, ``v``, ``object_index`` chunked like them.  Each
 block is traced by a task that asks its worker process for the structure: the first task
-on a worker reads the scene file (``core.save_mesh``) and builds it, every later task
-reuses it.  The cache is keyed by the file's path, the SHA-256 of its bytes as the client
+on a worker reads the scene file (``core.save_mesh``, ``core.meshio.save_scene``) and
+builds it, every later task reuses it.  The cache is keyed by the file's path, the SHA-256 of its bytes as the client
 saw them (a worker that reads different bytes fails instead of tracing another scene;
 node-local copies with other modification times still hit), the kind and its options.
+
+An instanced scene file (version 2, ``core.meshio.save_scene``) is traced in two levels:
+the worker builds one bottom level per unique mesh, keyed by the mesh's content digest,
+the kind and its options, and places them with ``core.TwoLevel`` (the top level, per
+file).  A bottom lives in the worker's cache while some cached scene uses it, so a later
+frame whose meshes are unchanged (only matrices moved) builds its top level alone;
+``worker_stats`` counts bottom builds and reuses.  The results are the flat scene's: the
+global triangle (``tri_base + local``), its object, and u, v as the flat mesh's corners
+give them (a mirrored instance's corners are swapped there, so its u and v are swapped
+here), within float32 rounding of a flat trace (the ray is carried into object space).
+``closest`` on such a file builds the flat mesh's structure.
 
 ``kind="auto"`` decides once, on the client, for the whole array: ``core.plan`` with the
 caller's calibration or the shipped one, the expected rays defaulting to the array's
@@ -36,14 +47,16 @@ from pathlib import Path
 import numpy as np
 
 from .factory import KINDS, build
-from .meshio import check_scene, file_digest, read_scene
+from .meshio import INSTANCED_VERSION, check_scene, file_digest, read_scene
+from .twolevel import TwoLevel
 
 #: one traced ray; a block of rays becomes one structured array, the public arrays are its fields
 RESULT_DTYPE = np.dtype([("t", np.float32), ("triangle", np.int32), ("u", np.float32), ("v", np.float32),
                          ("object_index", np.int32)])
 FIELDS = RESULT_DTYPE.names
 #: structures one worker process keeps, least recently used dropped first: trace_frames'
-#: tasks go roughly frame by frame, so a few bound the memory without rebuilding
+#: tasks go roughly frame by frame, so a few bound the memory without rebuilding (an
+#: instanced scene's bottom levels are kept while one of these uses them)
 CACHE_SIZE = 4
 
 
@@ -58,17 +71,23 @@ def _dask_array():
 
 @dataclass(frozen=True)
 class SceneRef:
-    """A scene file as the tasks name it: the absolute path and the SHA-256 the client read."""
+    """A scene file as the tasks name it: the absolute path, the SHA-256 the client read and
+    its format version (2: instanced, traced in two levels)."""
 
     path: str
     digest: str
+    version: int = 1
 
     @classmethod
     def of(cls, path) -> "SceneRef":
         """Check ``path`` on the client: FileNotFoundError or core.SceneFileError naming it."""
         p = Path(path).expanduser().absolute()
-        check_scene(p)
-        return cls(str(p), file_digest(p))
+        version = check_scene(p)
+        return cls(str(p), file_digest(p), version)
+
+    @property
+    def instanced(self) -> bool:
+        return self.version >= INSTANCED_VERSION
 
     def label(self) -> str:
         return f"{Path(self.path).name}@{self.digest[:12]}"
@@ -76,17 +95,50 @@ class SceneRef:
 
 # -- the worker side -----------------------------------------------------------------------------
 
+class _Instanced:
+    """A version-2 scene on a worker: a ``TwoLevel`` over shared bottoms, and per instance
+    its object and whether it is mirrored (the flat mesh swapped its corners)."""
+
+    kind = "twolevel"
+
+    def __init__(self, top: TwoLevel, instance_object, mirrored, build_time: float):
+        if top.triangle_dtype != np.int32:
+            raise ValueError(f"the scene has more global triangles than int32 results can number "
+                             f"({top.triangle_count:,})")
+        self.top, self.instance_object, self.mirrored, self.build_time = top, instance_object, mirrored, build_time
+
+    def trace(self, origins, directions, tmin, tmax):
+        hits = self.top.trace(origins, directions, tmin, tmax)
+        swap = hits.instance >= 0
+        swap[swap] = self.mirrored[hits.instance[swap]]
+        hits.u[swap], hits.v[swap] = hits.v[swap], hits.u[swap].copy()
+        return hits
+
+    def object_index(self, hits) -> np.ndarray:
+        obj = np.full(len(hits.triangle), -1, np.int32)
+        found = hits.instance >= 0
+        obj[found] = self.instance_object[hits.instance[found]]
+        return obj
+
+
 class _StructureCache:
-    """Structures built in this process, keyed by (path, digest, kind, options); at most
-    ``size`` kept.  Builds of one key are serialised, so threads of a worker build once."""
+    """Structures built in this process, keyed by (path, digest, kind, options, two levels);
+    at most ``size`` kept.  Builds of one key are serialised, so threads of a worker build
+    once.  Bottom levels of instanced scenes, keyed by (mesh digest, kind, options), live
+    while a cached scene uses them (or a build in progress holds them: ``pins``)."""
 
     def __init__(self, size: int):
         self.size = size
         self.lock = threading.Lock()
         self.entries: OrderedDict = OrderedDict()
+        self.uses: dict = {}  # entry key -> the bottom keys it uses
+        self.bottoms: dict = {}  # (mesh digest, kind, config) -> structure
+        self.pins: Counter = Counter()
         self.building: dict = {}
         self.builds: Counter = Counter()
         self.blocks: Counter = Counter()
+        self.bottom_builds: Counter = Counter()
+        self.bottom_reuses: Counter = Counter()
         #: seconds per (scene label, kind): building, tracing (wall), tracing (this thread's CPU)
         self.seconds: dict = {"build": Counter(), "trace": Counter(), "trace_cpu": Counter()}
 
@@ -97,8 +149,11 @@ class _StructureCache:
                 self.entries.move_to_end(key)
             return acc
 
-    def get(self, scene: SceneRef, kind: str, config: tuple):
-        key = (scene.path, scene.digest, kind, config)
+    def get(self, scene: SceneRef, kind: str, config: tuple, two_level: bool = False):
+        """The structure of ``scene``: a ``_Instanced`` when ``two_level`` and the file is
+        instanced, else one ``build`` over its (flat) mesh."""
+        two_level = two_level and scene.instanced
+        key = (scene.path, scene.digest, kind, config, two_level)
         acc = self._cached(key)
         if acc is not None:
             return acc
@@ -107,16 +162,72 @@ class _StructureCache:
         with key_lock:
             acc = self._cached(key)
             if acc is None:
-                mesh = read_scene(scene.path, expect_digest=scene.digest).mesh
-                acc = build(mesh, kind, **dict(config))
-                with self.lock:
-                    self.entries[key] = acc
-                    self.builds[(scene.label(), kind)] += 1
-                    self.seconds["build"][(scene.label(), kind)] += acc.build_time
-                    while len(self.entries) > self.size:
-                        self.entries.popitem(last=False)
-                    self.building.pop(key, None)
+                f = read_scene(scene.path, expect_digest=scene.digest)
+                used = []
+                try:
+                    if two_level:
+                        acc = self._two_level(f.instances, scene, kind, config, used)
+                    else:
+                        acc = build(f.mesh, kind, **dict(config))
+                    with self.lock:
+                        self.entries[key] = acc
+                        self.uses[key] = tuple(used)
+                        self.builds[(scene.label(), kind)] += 1
+                        self.seconds["build"][(scene.label(), kind)] += acc.build_time
+                        while len(self.entries) > self.size:
+                            old, _ = self.entries.popitem(last=False)
+                            self.uses.pop(old, None)
+                finally:
+                    with self.lock:
+                        self.pins.subtract(used)
+                        self._drop_unused_bottoms()
+                        self.building.pop(key, None)
         return acc
+
+    def _two_level(self, inst, scene: SceneRef, kind: str, config: tuple, used: list) -> _Instanced:
+        """The top level over this file's instances, each bottom taken from the cache or
+        built (and pinned in ``used`` until the scene is cached)."""
+        t0 = time.perf_counter()
+        label = (scene.label(), kind)
+        bottoms = []
+        for mesh, digest in zip(inst.meshes, inst.digests):
+            bkey = (digest, kind, config)
+            acc = self._take_bottom(bkey, label, used)
+            if acc is None:
+                with self.lock:
+                    bottom_lock = self.building.setdefault(("bottom",) + bkey, threading.Lock())
+                with bottom_lock:
+                    acc = self._take_bottom(bkey, label, used)
+                    if acc is None:
+                        try:
+                            acc = build(mesh, kind, **dict(config))
+                            with self.lock:
+                                self.bottoms[bkey] = acc
+                                self.pins[bkey] += 1
+                                used.append(bkey)
+                                self.bottom_builds[label] += 1
+                        finally:
+                            with self.lock:
+                                self.building.pop(("bottom",) + bkey, None)
+            bottoms.append(acc)
+        top = TwoLevel(bottoms, inst.instance_mesh, inst.matrices, inst.tri_base)
+        return _Instanced(top, inst.instance_object, inst.mirrored, time.perf_counter() - t0)
+
+    def _take_bottom(self, bkey, label, used: list):
+        with self.lock:
+            acc = self.bottoms.get(bkey)
+            if acc is not None:
+                self.pins[bkey] += 1
+                used.append(bkey)
+                self.bottom_reuses[label] += 1
+            return acc
+
+    def _drop_unused_bottoms(self):
+        """Under the lock: forget the bottoms no cached scene uses and no build holds."""
+        keep = {b for bs in self.uses.values() for b in bs} | {b for b, n in self.pins.items() if n > 0}
+        for b in [b for b in self.bottoms if b not in keep]:
+            del self.bottoms[b]
+        self.pins = Counter({b: n for b, n in self.pins.items() if n > 0})
 
     def traced(self, scene: SceneRef, kind: str, wall: float, cpu: float):
         key = (scene.label(), kind)
@@ -131,13 +242,18 @@ class _StructureCache:
 
         with self.lock:
             return {"builds": named(self.builds), "blocks": named(self.blocks),
+                    "bottom_builds": named(self.bottom_builds), "bottom_reuses": named(self.bottom_reuses),
                     **{f"{what}_s": named(c) for what, c in self.seconds.items()},
-                    "cached": [f"{Path(p).name}@{d[:12]}:{k}" for p, d, k, _ in self.entries]}
+                    "cached": [f"{Path(p).name}@{d[:12]}:{k}" for p, d, k, _, _ in self.entries],
+                    "bottoms_cached": [f"{d[:12]}:{k}" for d, k, _ in self.bottoms]}
 
     def clear(self):
         with self.lock:
             self.entries.clear()
-            for c in (self.builds, self.blocks, *self.seconds.values()):
+            self.uses.clear()
+            self.bottoms.clear()
+            self.pins.clear()
+            for c in (self.builds, self.blocks, self.bottom_builds, self.bottom_reuses, *self.seconds.values()):
                 c.clear()
 
 
@@ -147,8 +263,10 @@ _CACHE = _StructureCache(CACHE_SIZE)
 def worker_stats() -> dict:
     """This process's structure cache, per '<file>@<digest>:<kind>': builds, traced blocks,
     seconds spent building (build_s), tracing (trace_s) and this worker thread's CPU seconds
-    while tracing (trace_cpu_s: below trace_s when the machine is oversubscribed), and what
-    is cached.  On a cluster: ``client.run(core.distributed.worker_stats)``."""
+    while tracing (trace_cpu_s: below trace_s when the machine is oversubscribed), what is
+    cached; for instanced files also the bottom levels the file's top level built
+    (bottom_builds) and took from the cache (bottom_reuses), and the bottoms cached
+    ('<mesh digest>:<kind>').  On a cluster: ``client.run(core.distributed.worker_stats)``."""
     return _CACHE.stats()
 
 
@@ -158,16 +276,16 @@ def clear_worker_cache() -> None:
 
 
 def _trace_block(origins, directions, tmin, tmax, *, scene: SceneRef, kind: str, config: tuple):
-    acc, hits = _timed(scene, kind, config, lambda acc: acc.trace(origins, directions, tmin, tmax))
+    acc, hits = _timed(scene, kind, config, lambda acc: acc.trace(origins, directions, tmin, tmax), two_level=True)
     out = np.empty(len(hits), RESULT_DTYPE)
     out["t"], out["triangle"], out["u"], out["v"] = hits.t, hits.triangle, hits.u, hits.v
-    out["object_index"] = _object_index(acc, hits.triangle)
+    out["object_index"] = acc.object_index(hits) if isinstance(acc, _Instanced) else _object_index(acc, hits.triangle)
     return out
 
 
-def _timed(scene: SceneRef, kind: str, config: tuple, query):
+def _timed(scene: SceneRef, kind: str, config: tuple, query, two_level: bool = False):
     """(the worker's cached structure, ``query(structure)``), its time added to the worker's stats."""
-    acc = _CACHE.get(scene, kind, config)
+    acc = _CACHE.get(scene, kind, config, two_level)
     wall, cpu = time.perf_counter(), time.thread_time()
     result = query(acc)
     _CACHE.traced(scene, kind, time.perf_counter() - wall, time.thread_time() - cpu)

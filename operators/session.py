@@ -124,36 +124,30 @@ def _non_finite_objects(depsgraph) -> list[tuple[str, int]]:
 
 
 def extract(depsgraph, *, selected_only=False, progress=None, attributes=()):
-    """(TriangleMesh, summary dict) of the evaluated scene; NoGeometry or InvalidGeometry
-    with a one-line reason when there is nothing usable."""
+    """(flat TriangleMesh, summary dict) of the evaluated scene; NoGeometry or
+    InvalidGeometry (also for NaN or infinite vertices) with a one-line reason."""
     t0 = time.perf_counter()
-    try:
-        layout = scene_layout(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes)
-        if layout.left_out:
-            raise InvalidGeometry(_invalid_message(depsgraph))
-        mesh = layout.flat(progress)
-    except NoGeometryError as e:
-        raise NoGeometry(f"no geometry: {e}") from None
-    except ValueError as e:
-        bad = _non_finite_objects(depsgraph)
-        if bad:
-            names = ", ".join(f"'{n}' ({k} vertices)" for n, k in bad[:5])
-            raise InvalidGeometry(f"invalid geometry: NaN or infinite vertex coordinates in {names}; fix or hide them") from None
-        raise InvalidGeometry(f"invalid geometry: {e}") from None
+    layout, _ = extract_layout(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes,
+                               strict=True)
+    mesh = layout.flat(progress)
     return mesh, scene_summary(depsgraph, mesh, time.perf_counter() - t0)
 
 
-def _extract_layout(depsgraph, *, selected_only=False, progress=None, attributes=()):
-    """(``extract.Layout``, summary dict) of the evaluated scene, every mesh whose key is in
-    ``MESHES`` taken from there; NoGeometry or InvalidGeometry with a one-line reason."""
+def extract_layout(depsgraph, *, selected_only=False, progress=None, attributes=(), cache=None, strict=False):
+    """(``extract.Layout``, summary dict without bounds) of the evaluated scene; with
+    ``cache`` (``MESHES``), every mesh whose key is there is taken from it.  NoGeometry, or
+    InvalidGeometry when every triangle has a NaN or infinite corner, or with ``strict`` when
+    any has; otherwise such triangles are left out (``layout.left_out``)."""
     t0 = time.perf_counter()
     try:
         layout = scene_layout(depsgraph, selected_only=selected_only, progress=progress, attributes=attributes,
-                              cache=MESHES, edits=EDITS)
+                              cache=cache, edits=EDITS if cache is not None else None)
     except NoGeometryError as e:
         raise NoGeometry(f"no geometry: {e}") from None
     except ValueError:  # every triangle had a NaN or infinite corner
         raise InvalidGeometry(_invalid_message(depsgraph)) from None
+    if strict and layout.left_out:
+        raise InvalidGeometry(_invalid_message(depsgraph))
     if progress is not None:
         progress(1.0)
     return layout, scene_summary(depsgraph, layout, time.perf_counter() - t0, bounds=False)
@@ -557,8 +551,8 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
         old._summary["frame"] = depsgraph.scene.frame_current
         return old
     t0 = time.perf_counter()
-    layout, summary = _extract_layout(depsgraph, selected_only=selected_only, progress=progress,
-                                      attributes=tuple(want))
+    layout, summary = extract_layout(depsgraph, selected_only=selected_only, progress=progress,
+                                     attributes=tuple(want), cache=MESHES)
     if layout.left_out:
         if strict:
             raise InvalidGeometry(_invalid_message(depsgraph))
@@ -595,7 +589,7 @@ def _prune():
 def _add_attributes(s: Session, depsgraph, selected_only, attributes):
     """Read the scene again with more per-corner or per-triangle data; the geometry (and so
     every structure built) stays, the new layout replaces the old one."""
-    layout, _ = _extract_layout(depsgraph, selected_only=selected_only, attributes=tuple(attributes))
+    layout, _ = extract_layout(depsgraph, selected_only=selected_only, attributes=tuple(attributes), cache=MESHES)
     old = s.layout
     if layout.triangle_count != old.triangle_count or not np.array_equal(layout.tri_base, old.tri_base) \
             or not np.array_equal(layout.placement_group, old.placement_group):

@@ -238,3 +238,112 @@ def test_closest_refuses_bad_arguments_before_any_task(tmp_path):
     with pytest.raises(FileNotFoundError):
         hd.closest(tmp_path / "missing.npz", pts)
 
+
+
+# -- instanced scene files (version 2): bottoms per mesh digest, reused across frames ------------
+
+def blob(rng, t):
+    """Random triangles around the origin (object space), about one unit across."""
+    centre = rng.uniform(-0.5, 0.5, (t, 1, 3))
+    return core.TriangleMesh((centre + 0.08 * rng.normal(size=(t, 3, 3))).reshape(-1, 3).astype(np.float32),
+                             np.arange(3 * t).reshape(t, 3), polygon_index=np.arange(t))
+
+
+def placements(rng, which):
+    """Row-major 4x4 matrices (rounded to float32, as Blender's), instance 1 mirrored."""
+    mats = np.tile(np.eye(4), (len(which), 1, 1))
+    for i in range(len(which)):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        scale = np.array([-1.2 if i == 1 else 1.0 + 0.2 * i, 0.8, 1.1])
+        mats[i, :3, :3] = q * np.abs(np.linalg.det(q)) @ np.diag(scale)
+        mats[i, :3, 3] = rng.uniform(0, 1.5, 3)
+    return mats.astype(np.float32).astype(np.float64)
+
+
+def instanced_frames(tmp_path, seed=70):
+    """Frame 1, and frame 2 with instance 3 moved: two meshes placed six times, saved as
+    version-2 files; (paths, flat meshes)."""
+    rng = np.random.default_rng(seed)
+    meshes = [blob(rng, 300), blob(rng, 200)]
+    which = np.array([0, 0, 1, 1, 0, 1])
+    objects = np.array([0, 1, 2, 2, 0, 1])
+    first = placements(rng, which)
+    second = first.copy()
+    second[3, :3, 3] += (0.6, -0.3, 0.2)
+    paths = [core.meshio.save_scene(tmp_path / f"frame_{f:04d}.npz", meshes, which, m, objects, ["a", "b", "c"], frame=f)
+             for f, m in ((1, first), (2, second))]
+    return paths, [core.load_mesh(p) for p in paths]
+
+
+def assert_close_to_flat(got, flat, o, d, what):
+    """As a float64 brute-force trace of the flat mesh: hit/miss and the global triangle, but
+    for near-ties (a ray through an edge); t within float32 rounding of the scene's scale."""
+    ref = core.build(flat, "brute").trace(o, d)
+    tri, t = got["triangle"], got["t"]
+    scale = float(np.abs(flat.vertices).max())
+    hit = tri >= 0
+    flips = np.flatnonzero(hit != ref.hit)
+    assert flips.size <= max(2, len(o) // 500), f"{what}: hit/miss differs at {flips.size} rays, first {flips[:5].tolist()}"
+    both = hit & ref.hit
+    other = np.flatnonzero(both & (tri != ref.triangle))
+    assert np.allclose(t[other], ref.t[other], rtol=0, atol=1e-4 * scale), \
+        f"{what}: another triangle at {other.size} rays, not all near-ties, first {other[:5].tolist()}"
+    same = both & (tri == ref.triangle)
+    assert other.size <= max(2, len(o) // 500) and same.sum() > len(o) // 8, f"{what}: {same.sum()} same hits of {len(o)}"
+    assert np.allclose(t[same], ref.t[same], rtol=1e-5, atol=1e-5 * scale), f"{what}: t differs beyond float32 rounding"
+    for name in ("u", "v"):
+        assert np.allclose(got[name][same], getattr(ref, name)[same], atol=1e-3), f"{what}: {name} differs"
+    assert np.array_equal(got["object_index"][hit], flat.object_index[tri[hit]]) and (got["object_index"][~hit] == -1).all()
+
+
+def test_instanced_frames_on_the_cluster_equal_flat_traces_and_build_each_bottom_once_per_worker(client, tmp_path):
+    client.run(hd.clear_worker_cache)
+    paths, flats = instanced_frames(tmp_path)
+    o, d = core.uniform_rays(flats[0], 4_000, seed=71)
+    do, dd = da.from_array(o, chunks=(1_000, 3)), da.from_array(d, chunks=(1_000, 3))
+    results = hd.trace_frames(paths, [do, do], [dd, dd], kind="bvh")
+    got = [gather(client, r) for r in results]
+    for i, (g, flat) in enumerate(zip(got, flats)):
+        assert_close_to_flat(g, flat, o, d, f"frame {i + 1}")
+    assert not np.array_equal(got[0]["triangle"], got[1]["triangle"]), "the move must change some hits"
+    for w, s in stats(client).items():
+        built = sum(s["bottom_builds"].get(f"{r.scene.label()}:bvh", 0) for r in results)
+        tops = sum(s["builds"].get(f"{r.scene.label()}:bvh", 0) for r in results)
+        reused = sum(s["bottom_reuses"].get(f"{r.scene.label()}:bvh", 0) for r in results)
+        assert built <= 2, f"worker {w} built {built} bottoms for 2 unique meshes over 2 frames: {s}"
+        assert built + reused == 2 * tops, f"worker {w}: every top level takes its 2 bottoms: {s}"
+
+
+def test_a_later_frame_with_unchanged_meshes_builds_no_bottom(tmp_path):
+    """In this process (the synchronous scheduler), so the counters are certain."""
+    hd.clear_worker_cache()
+    paths, flats = instanced_frames(tmp_path, seed=72)
+    o, d = core.uniform_rays(flats[0], 2_000, seed=73)
+    do, dd = da.from_array(o, chunks=(500, 3)), da.from_array(d, chunks=(500, 3))
+    labels = []
+    for path, flat in zip(paths, flats):
+        r = hd.trace(path, do, dd, kind="bvh")
+        assert_close_to_flat(r.compute(scheduler="synchronous"), flat, o, d, path.name)
+        labels.append(f"{r.scene.label()}:bvh")
+    s = hd.worker_stats()
+    assert s["bottom_builds"].get(labels[0]) == 2 and labels[0] not in s["bottom_reuses"], s
+    assert labels[1] not in s["bottom_builds"] and s["bottom_reuses"].get(labels[1]) == 2, \
+        f"frame 2 moved an instance only: its top level alone is built: {s}"
+    assert s["builds"][labels[1]] == 1 and len(s["bottoms_cached"]) == 2, s
+    # a mesh whose content changes gets a new bottom; the other is still reused
+    f2 = core.read_scene(paths[1]).instances
+    changed = [f2.meshes[0], core.TriangleMesh(f2.meshes[1].vertices * np.float32(1.1), f2.meshes[1].triangles,
+                                               polygon_index=f2.meshes[1].polygon_index)]
+    p3 = core.meshio.save_scene(tmp_path / "frame_0003.npz", changed, f2.instance_mesh, f2.matrices,
+                                f2.instance_object, f2.object_names, frame=3)
+    r = hd.trace(p3, do, dd, kind="bvh")
+    assert_close_to_flat(r.compute(scheduler="synchronous"), core.load_mesh(p3), o, d, p3.name)
+    s = hd.worker_stats()
+    label = f"{r.scene.label()}:bvh"
+    assert s["bottom_builds"].get(label) == 1 and s["bottom_reuses"].get(label) == 1, s
+    # point queries on an instanced file search the flat mesh
+    pts = np.random.default_rng(74).uniform(0, 3, (500, 3))
+    near = hd.closest(paths[0], da.from_array(pts, chunks=(250, 3))).compute(scheduler="synchronous")
+    want = core.build(flats[0], "bvh").closest(pts)
+    assert np.array_equal(near["triangle"], want.triangle) and np.array_equal(near["distance"], want.distance)
+    hd.clear_worker_cache()

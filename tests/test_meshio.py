@@ -1,4 +1,5 @@
-"""Scene files: save_mesh/load_mesh keep every array bit for bit; bad files are clear errors."""
+"""Scene files: save_mesh/load_mesh keep every array bit for bit; bad files are clear errors;
+an instanced (version-2) file stores each mesh once and gives the flat mesh the extraction would."""
 
 import os
 import zipfile
@@ -34,7 +35,7 @@ def test_round_trip_keeps_arrays_names_and_frame(tmp_path):
     path = core.save_mesh(mesh, tmp_path / "f.npz", frame=17)
     scene = core.read_scene(path)
     _same(mesh, scene.mesh)
-    assert scene.frame == 17 and scene.version == meshio.VERSION
+    assert scene.frame == 17 and scene.version == meshio.FLAT_VERSION == 1
     _same(mesh, core.load_mesh(path))
 
 
@@ -105,7 +106,7 @@ def test_wrong_or_damaged_files_are_scene_file_errors_naming_the_file(tmp_path, 
 
 def test_header_check_reads_only_the_header_and_rejects_foreign_files(tmp_path):
     good = core.save_mesh(_mesh(), tmp_path / "good.npz")
-    assert meshio.check_scene(good) == meshio.VERSION
+    assert meshio.check_scene(good) == meshio.FLAT_VERSION
     with open(tmp_path / "foreign.npz", "wb") as f:
         np.savez(f, a=np.zeros(3))
     with pytest.raises(core.SceneFileError, match="foreign.npz.*not a scene file"):
@@ -140,3 +141,120 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypat
 def test_save_needs_a_triangle_mesh(tmp_path):
     with pytest.raises(TypeError, match="TriangleMesh"):
         core.save_mesh({"vertices": []}, tmp_path / "x.npz")
+
+
+# -- version 2: instanced scenes -----------------------------------------------------------------
+
+def _rotation(axis, angle):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _matrix(rot=np.eye(3), scale=(1.0, 1.0, 1.0), move=(0.0, 0.0, 0.0)):
+    """A 4x4 row-major object-to-world matrix, rounded to float32 as Blender's are."""
+    m = np.eye(4)
+    m[:3, :3] = rot @ np.diag(scale)
+    m[:3, 3] = move
+    return m.astype(np.float32).astype(np.float64)
+
+
+def instanced(seed=0, copies=(4, 3), mirrored=1):
+    """Two object-space meshes placed ``copies`` times each, the first ``mirrored`` placements
+    of mesh 0 with a negative scale; names 'A', 'B', 'C' (an object per instance, cycling)."""
+    rng = np.random.default_rng(seed)
+    meshes = []
+    for k, t in enumerate((40, 25)):
+        v = rng.normal(size=(2 * t, 3)).astype(np.float32)
+        meshes.append(core.TriangleMesh(v, rng.integers(0, len(v), (t, 3)), polygon_index=np.arange(t) // 2 + 10 * k))
+    which = np.repeat(np.arange(len(copies)), copies)
+    mats = []
+    for i, k in enumerate(which):
+        scale = (-1.5, 1.0, 0.5) if (k == 0 and i < mirrored) else (1.0 + 0.3 * i, 1.0, 2.0)
+        mats.append(_matrix(_rotation(rng.normal(size=3), rng.uniform(0, 6)), scale, rng.uniform(-20, 20, 3)))
+    return meshes, which, np.array(mats), np.arange(len(which)) % 3, ["A", "B", "C"]
+
+
+def flat_by_hand(meshes, which, mats, objects, names):
+    """An independent flat mesh: instance by instance, world = v @ A^T + b in float32, a
+    mirrored instance's corners swapped [0, 2, 1], consecutive global numbering."""
+    verts, tris, obj, poly, nv = [], [], [], [], 0
+    for k, m, o in zip(which, mats, objects):
+        mesh = meshes[k]
+        a32, b32 = m[:3, :3].astype(np.float32), m[:3, 3].astype(np.float32)
+        verts.append(mesh.vertices @ a32.T + b32)
+        t = mesh.triangles + nv
+        tris.append(t[:, [0, 2, 1]] if np.linalg.det(m[:3, :3]) < 0 else t)
+        obj.append(np.full(mesh.triangle_count, o))
+        poly.append(mesh.polygon_index)
+        nv += len(mesh.vertices)
+    return core.TriangleMesh(np.vstack(verts), np.vstack(tris), np.concatenate(obj), np.concatenate(poly), names)
+
+
+def test_instanced_file_stores_each_mesh_once_and_gives_the_flat_mesh(tmp_path):
+    meshes, which, mats, objects, names = instanced(copies=(30, 20), mirrored=2)
+    path = meshio.save_scene(tmp_path / "i.npz", meshes, which, mats, objects, names, frame=4)
+    with np.load(path, allow_pickle=False) as z:
+        assert z["mesh_vertices"].shape == (sum(len(m.vertices) for m in meshes), 3), "each mesh's vertices once"
+        assert z["mesh_triangles"].shape == (sum(m.triangle_count for m in meshes), 3), "each mesh's triangles once"
+        assert z["instance_matrix"].shape == (50, 4, 4) and z["instance_matrix"].dtype == np.float64
+    f = core.read_scene(path)
+    assert f.version == meshio.INSTANCED_VERSION == 2 and f.frame == 4
+    want = flat_by_hand(meshes, which, mats, objects, names)
+    _same(want, f.mesh)
+    _same(want, core.load_mesh(path))
+    assert np.array_equal(f.mesh.instance_index, np.repeat(np.arange(50), [meshes[k].triangle_count for k in which]))
+    inst = f.instances
+    assert inst.mirrored.sum() == 2 and np.array_equal(inst.matrices, mats) and np.array_equal(inst.instance_mesh, which)
+    assert inst.digests == [meshio.mesh_digest(m) for m in meshes] and len(set(inst.digests)) == 2
+    flat_size = core.save_mesh(want, tmp_path / "flat.npz").stat().st_size
+    assert path.stat().st_size * 4 < flat_size, f"50 instances of 2 meshes: {path.stat().st_size} bytes, flat {flat_size}"
+
+
+def test_instanced_numbering_follows_tri_base_and_the_digest_follows_content(tmp_path):
+    meshes, which, mats, objects, names = instanced(seed=1, copies=(2, 2))
+    counts = np.array([meshes[k].triangle_count for k in which])
+    order = np.array([2, 0, 3, 1])  # the instances' ranges in this order
+    base = np.empty(4, np.int64)
+    base[order] = np.concatenate([[0], np.cumsum(counts[order])[:-1]])
+    got = core.read_scene(meshio.save_scene(tmp_path / "b.npz", meshes, which, mats, objects, names, base)).mesh
+    _same(flat_by_hand(meshes, which[order], mats[order], objects[order], names), got)
+    moved = core.TriangleMesh(meshes[0].vertices + np.float32(1), meshes[0].triangles, polygon_index=meshes[0].polygon_index)
+    assert meshio.mesh_digest(moved) != meshio.mesh_digest(meshes[0])
+    with pytest.raises(ValueError, match="tile"):
+        meshio.save_scene(tmp_path / "x.npz", meshes, which, mats, objects, names, base + 1)
+
+
+def test_instanced_flat_mesh_equals_the_extractions_assembly(tmp_path):
+    """The same data through operators/extract.py's _assemble (what a version-1 export writes)."""
+    pytest.importorskip("bpy", reason="operators.extract imports with the add-on (bpy)")
+    from types import SimpleNamespace
+
+    from hybrid_raycast.operators import extract
+
+    meshes, which, mats, objects, names = instanced(seed=2, copies=(3, 2), mirrored=2)
+    groups = [SimpleNamespace(co=m.vertices, tris=m.triangles, poly=m.polygon_index,
+                              where=list(np.flatnonzero(which == k)), entries=list(objects[which == k]),
+                              matrices=mats[which == k].astype(np.float32).transpose(0, 2, 1).copy())
+              for k, m in enumerate(meshes)]
+    want = extract._assemble(groups, names)
+    got = core.read_scene(meshio.save_scene(tmp_path / "e.npz", meshes, which, mats, objects, names)).mesh
+    _same(want, got)
+
+
+def test_damaged_or_inconsistent_instanced_files_are_scene_file_errors(tmp_path):
+    meshes, which, mats, objects, names = instanced(seed=3)
+    good = meshio.save_scene(tmp_path / "good.npz", meshes, which, mats, objects, names)
+    with np.load(good, allow_pickle=False) as z:
+        arrays = dict(z)
+    for what, change in [("digest", lambda a: a.__setitem__("mesh_digest", a["mesh_digest"][::-1].copy())),
+                         ("offsets", lambda a: a.__setitem__("mesh_vertex_start", a["mesh_vertex_start"] + 1)),
+                         ("mesh_index", lambda a: a.__setitem__("instance_mesh", a["instance_mesh"] + 5)),
+                         ("no_matrix", lambda a: a.pop("instance_matrix"))]:
+        bad = dict(arrays)
+        change(bad)
+        with open(tmp_path / f"{what}.npz", "wb") as f:
+            np.savez(f, **bad)
+        with pytest.raises(core.SceneFileError, match=f"{what}.npz: damaged") as e:
+            core.load_mesh(tmp_path / f"{what}.npz")
+        assert "\n" not in str(e.value)
