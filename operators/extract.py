@@ -633,6 +633,28 @@ class Layout:
             self._materials = ([m for m, u in zip(found, used) if u], remap[pool], base)
         return self._materials
 
+    def displacement(self, other: "Layout") -> float:
+        """The largest distance any vertex moves from this layout to ``other`` (the same
+        scene at another time): 0 for a placement with the same mesh and matrix, the
+        transformed vertices' difference otherwise; inf when the placements or the meshes'
+        vertex counts differ (the topology changed)."""
+        if len(self.placement_group) != len(other.placement_group) or \
+                not np.array_equal(self.tri_base, other.tri_base):
+            return float("inf")
+        worst = 0.0
+        for i in range(len(self.placement_group)):
+            g0, g1 = self.groups[self.placement_group[i]], other.groups[other.placement_group[i]]
+            m0, m1 = self.matrices[i], other.matrices[i]
+            if g0.key is not None and g0.key == g1.key and np.array_equal(m0, m1):
+                continue
+            if len(g0.co) != len(g1.co):
+                return float("inf")
+            w0 = g0.co.astype(np.float64) @ m0[:3, :3].T + m0[:3, 3]
+            w1 = g1.co.astype(np.float64) @ m1[:3, :3].T + m1[:3, 3]
+            if len(w0):
+                worst = max(worst, float(np.sqrt(((w1 - w0) ** 2).sum(axis=1).max())))
+        return worst
+
     @property
     def object_names(self):
         return self.names

@@ -567,10 +567,10 @@ def _brings_no_triangles(ob) -> bool:
     return ob.type in ("EMPTY", "CAMERA", "LIGHT") and ob.instance_type == "NONE"
 
 
-def _world_vertices(dg):
-    """World-space vertices of the evaluated scene (the session's extraction), or None."""
+def _layout(dg):
+    """The session's layout of the scene as evaluated now (meshes kept across calls), or None."""
     try:
-        return session.get(dg).mesh.vertices
+        return session.get(dg, strict=False).layout
     except (session.NoGeometry, session.InvalidGeometry):
         return None
 
@@ -612,13 +612,10 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         elif sweep.blocks:
             n_blocks = min(sweep.blocks, cap)
         else:
-            verts_end = _world_vertices(dg_end)
-            verts_end = None if verts_end is None else verts_end.copy()
-            verts0 = _world_vertices(_evaluate_at(scene, vl, frame, 0.0))
-            if verts0 is not None and verts_end is not None and verts0.shape == verts_end.shape:
-                disp = float(np.sqrt(((verts_end.astype(np.float64) - verts0) ** 2).sum(axis=1).max(initial=0.0)))
-            else:  # the topology changed within the sweep: as many blocks as allowed
-                disp = np.inf
+            end = _layout(dg_end)
+            start = _layout(_evaluate_at(scene, vl, frame, 0.0))
+            # inf when the topology changed within the sweep: as many blocks as allowed
+            disp = start.displacement(end) if start is not None and end is not None else np.inf
             n_blocks = motion.blocks_for(disp, sweep.tolerance, cap)
         if n_blocks == 1:
             plan = [(np.arange(n_beams), 0.0)]
