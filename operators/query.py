@@ -76,6 +76,9 @@ class CastResult:
     materials: np.ndarray | None = None
     material_names: np.ndarray | None = None
     plan: object = field(repr=False, default=None)
+    #: how the scene was traced: its parts (flat or two levels), what each holds and why
+    #: (``session.Session.describe``)
+    scene: dict = field(repr=False, default_factory=dict)
 
     def __len__(self):
         return len(self.t)
@@ -399,7 +402,8 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     return CastResult(t=t, hit=tri >= 0, points=points, normals=normals, objects=objects, object_names=names,
                       object_index=obj, instance_index=ins, instance_matrices=inst.matrices, polygon_index=poly,
                       triangle=tri, u=u, v=v, structure=kind, smooth_normals=smooth_n, uv=uvs,
-                      material_index=mat_index, materials=mats, material_names=mat_names, plan=s.plan)
+                      material_index=mat_index, materials=mats, material_names=mat_names, plan=s.plan,
+                      scene=s.describe())
 
 
 def occluded(origins, directions, *, tmin=0.0, tmax=np.inf, depsgraph=None, expected_rays=None,

@@ -298,6 +298,38 @@ class Session:
             SOUPS.pop(next(iter(SOUPS)))
         return got
 
+    def describe(self) -> dict:
+        """How this session's scene is traced, in words and counts (for results and the
+        JSON): the parts of its structures, what each holds, and why it is built so."""
+        lay = self.layout
+        unique = int(sum(len(g.tris) for g in lay.groups))
+        out = {"placements": int(len(lay.placement_group)), "meshes": len(lay.groups),
+               "triangles": int(lay.triangle_count), "unique_triangles": unique, "parts": []}
+        still_first = self.still is not None and bool(self.still.any())  # the still soup comes first
+        for key, acc in self.structures.items():
+            if key[0] != "twolevel":
+                continue
+            kind = key[1]
+            for i, (soup, glob, inst, _loc) in enumerate(acc.soups):
+                still = i == 0 and still_first
+                out["parts"].append({
+                    "kind": kind, "form": "flat", "placements": int(len(np.unique(inst))),
+                    "triangles": int(len(glob)),
+                    "why": ("these placements stayed put since the last change: one flat structure, kept while "
+                            "they do") if still else
+                           ("moved, and fewer triangles than the call's rays: rebuilt flat")})
+            if acc.moving is not None:
+                out["parts"].append({
+                    "kind": kind, "form": "two levels", "placements": int(acc.moving.instance_count),
+                    "triangles": int(acc.moving.triangle_count),
+                    "why": "moved, with more triangles than the call's rays: one structure per mesh, built once, "
+                           "placed under a top level"})
+        if not out["parts"]:
+            out["parts"].append({"kind": self.chosen, "form": "flat", "placements": out["placements"],
+                                 "triangles": out["triangles"],
+                                 "why": "the scene has not changed since its first call: one flat structure"})
+        return out
+
     @staticmethod
     def _bottom(g, kind, config):
         key = (g.key, kind, tuple(sorted(config.items()))) if g.key is not None else None

@@ -187,6 +187,9 @@ def test_two_level_hits_give_every_field_of_a_fresh_flat_extraction(fresh, addon
     assert isinstance(tracer, core.Split), tracer
     assert (tracer.moving is not None) == (movers == "two-level"), tracer
     assert len(tracer.soups) == (moved == "one") + (movers == "flat"), tracer
+    forms = [p["form"] for p in r.scene["parts"]]
+    assert forms == ["flat"] * len(tracer.soups) + (["two levels"] if movers == "two-level" else []), r.scene
+    assert all(p["why"] for p in r.scene["parts"])
     mesh = ext.scene_mesh(dg, attributes=("material",))
     ref = core.build(mesh, "brute").trace(o, d)
     assert np.array_equal(r.hit, ref.hit), f"hit differs on {np.flatnonzero(r.hit != ref.hit)[:10]}"
