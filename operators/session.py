@@ -179,6 +179,9 @@ BOTTOMS: dict = {}
 SOUPS: dict = {}
 #: soups kept (a few: the scenes and kinds in use)
 SOUPS_KEPT = 4
+#: how many times instancing must multiply the unique triangles for a scene to be traced on
+#: two levels from its first call (``Session.instanced``)
+INSTANCED_FROM = 8
 #: the timings of the last call, per session: what the call paid for
 TIMING_KEYS = ("extract", "bottom_builds", "top_level", "trace")
 
@@ -227,6 +230,18 @@ class Session:
         return self.layout.flat()
 
     @property
+    def instanced(self) -> bool:
+        """Whether instancing multiplies the scene's triangles by ``INSTANCED_FROM`` or more
+        over many placements (geometry-nodes scattering): then the scene is traced on two
+        levels from its first call, as a flat soup would hold every copy in memory (and a
+        numpy top level costs per ray what the copies save: BENCHMARKS.md, "Two-level
+        scenes"), and 'auto' takes the fastest candidate per ray without a plan, whose
+        sample needs the flat soup."""
+        lay = self.layout
+        unique = sum(len(g.tris) for g in lay.groups)
+        return len(lay.placement_group) >= core.twolevel.PAIRS_FROM and lay.triangle_count >= INSTANCED_FROM * unique
+
+    @property
     def summary(self) -> dict:
         """``extract.scene_summary`` of the extraction, its bounds made on first use."""
         if "bounds" not in self._summary:
@@ -247,7 +262,7 @@ class Session:
         flat when it has fewer triangles than the call has rays (``rays``: the build, linear
         in triangles, costs less than the top level, linear in rays), else placed on two
         levels, which builds nothing but the top level."""
-        if not self.changed:
+        if not self.changed and not self.instanced:
             return self.structure(kind, **config)
         cfg = tuple(sorted(config.items()))
         k = ("twolevel", kind, cfg)
@@ -324,6 +339,9 @@ class Session:
                     "triangles": int(acc.moving.triangle_count),
                     "why": "moved, with more triangles than the call's rays: one structure per mesh, built once, "
                            "placed under a top level"})
+        if self.instanced:
+            out["instanced"] = (f"instancing multiplies {unique:,} unique triangles {lay.triangle_count / max(unique, 1):.0f}"
+                                f" times over {len(lay.placement_group):,} placements: two levels from the first call")
         if not out["parts"]:
             out["parts"].append({"kind": self.chosen, "form": "flat", "placements": out["placements"],
                                  "triangles": out["triangles"],
@@ -493,6 +511,10 @@ class Session:
             out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax)
             self.timings["trace"] += time.perf_counter() - t0
             return out, structure
+        if self.chosen is None and not flat and self.instanced:
+            self.calibration, self.kinds = calibration, tuple(k for k in kinds if k != "grid")
+            fast = [k for k in ("embree", "bvh") if k in kinds]
+            self.chosen = fast[0] if fast else "grid"
         if self.chosen is None:
             grid = self.cached("grid", **grid_config)
             p = core.plan(self.mesh, budget, calibration, rays=(o, d, tmin, tmax), samples=samples, grid=grid,

@@ -231,3 +231,42 @@ def test_nan_vertices_in_one_object_leave_out_its_bad_triangles_with_one_warning
         addon.api.cast(o, d, strict=True)
     mesh = addon.operators.extract.scene_layout(bpy.context.evaluated_depsgraph_get())
     assert mesh.left_out and mesh.left_out[0][0] == ["Broken"] and 0 < mesh.left_out[0][1] < 12
+
+
+def test_heavy_instancing_is_traced_on_two_levels_from_the_first_call(fresh, addon):
+    """100 collection instances of one cube: the flat soup would hold 100 copies, so the first
+    call already places one structure per mesh; every hit equals the flat brute force."""
+    scene = bpy.context.scene
+    coll = bpy.data.collections.new("Props")
+    cube = add_cube("Cell", 0.8)
+    scene.collection.objects.unlink(cube)
+    coll.objects.link(cube)
+    rng = np.random.default_rng(5)
+    for i in range(100):
+        e = bpy.data.objects.new(f"I{i}", None)
+        e.instance_type, e.instance_collection = "COLLECTION", coll
+        e.location = (*rng.uniform(-10, 10, 2), 0.0)
+        e.rotation_euler = (0.0, 0.0, rng.uniform(0, 3))
+        scene.collection.objects.link(e)
+    bpy.context.view_layer.update()
+    o = np.stack([rng.uniform(-10, 10, 2000), rng.uniform(-10, 10, 2000), np.full(2000, 5.0)], axis=1)
+    d = np.array([0.05, 0.02, -1.0])
+    r = addon.api.cast(o, d, expected_rays=100)  # fewer rays than triangles: nothing is rebuilt flat
+    s = addon.operators.session.get(bpy.context.evaluated_depsgraph_get())
+    assert s.instanced and not s.changed and "instanced" in r.scene, r.scene
+    assert [p["form"] for p in r.scene["parts"]] == ["two levels"], r.scene
+    assert s.layout._flat is None, "the flat soup was assembled"
+    mesh = addon.operators.extract.scene_mesh(bpy.context.evaluated_depsgraph_get())
+    ref = addon.core.build(mesh, "brute").trace(o, np.broadcast_to(d, o.shape))
+    assert np.array_equal(r.hit, ref.hit) and np.allclose(r.t[ref.hit], ref.t[ref.hit], rtol=1e-5, atol=1e-5)
+    other = np.flatnonzero(r.triangle != ref.triangle)
+    # ties: a ray down a quad's diagonal, or onto the coplanar tops of two overlapping cubes, whose
+    # t rounds differently in each instance's space; our triangle is hit there too, at the same t
+    for i in other:
+        a, b, c = mesh.tri_vertices[r.triangle[i]].astype(np.float64)
+        p = o[i] + float(ref.t[i]) * d  # the reference's hit point, on our triangle too
+        n = np.cross(b - a, c - a)
+        area2 = np.linalg.norm(n)
+        assert abs(np.dot(p - a, n)) / area2 < 1e-4, f"ray {i}: our triangle is not in the hit's plane"
+        w = [np.dot(np.cross(y - x, p - x), n) / area2 ** 2 for x, y in ((b, c), (c, a), (a, b))]
+        assert min(w) > -1e-4, f"ray {i}: the hit point is outside our triangle (barycentrics {w})"
