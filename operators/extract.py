@@ -388,12 +388,15 @@ class MeshRead:
 
 
 def mesh_key(me, owner, edits) -> tuple:
-    """What names an evaluated mesh's content across calls: its ``session_uid`` (Blender
+    """What names an evaluated mesh's content across calls: its ``session_uid`` (bpy 5.0
     gives an evaluated mesh a new one when it is evaluated again; module doc of
-    operators/session.py), the geometry updates seen on its owner object (``edits``: bpy 5.3
-    updates some evaluated meshes in place) and its sizes."""
-    return (me.session_uid, edits.get(owner.as_pointer(), 0) if edits else 0, len(me.vertices),
-            len(me.loop_triangles))
+    operators/session.py), or where that is 0 (bpy 5.3 gives evaluated meshes none, checked
+    with 5.3.0) the evaluated mesh's address and its owner object's ``session_uid`` (a new
+    object, even at a reused address, is another); then the geometry updates seen on the
+    owner (``edits``: bpy 5.3 updates some evaluated meshes in place) and its sizes."""
+    uid = me.session_uid
+    ident = (uid,) if uid else ("address", me.as_pointer(), owner.session_uid)
+    return ident + (edits.get(owner.as_pointer(), 0) if edits else 0, len(me.vertices), len(me.loop_triangles))
 
 
 def _polygon_materials(me) -> np.ndarray:

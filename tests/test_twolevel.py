@@ -432,7 +432,7 @@ def test_global_triangles_past_the_int32_range_are_int64():
     tl = TwoLevel([core.build(box, "bvh")], [0, 0], np.array([affine(np.eye(3), [0, 0, 0]), affine(np.eye(3), [5, 0, 0])]), base)
     h = tl.trace(np.float32([[5, 0, 3], [0, 0, 3]]), np.float32([[0, 0, -1], [0, 0, -1]]))
     assert h.triangle.dtype == np.int64 and tl.triangle_dtype == np.int64
-    assert h.triangle[0] == 2**31 + 5 + h.local_triangle[0] and h.triangle[1] == h.local_triangle[1]
+    assert h.triangle[0] == 2**31 + 5 + int(h.local_triangle[0]) and h.triangle[1] == h.local_triangle[1]
     assert h.instance.tolist() == [1, 0]
 
 
