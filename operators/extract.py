@@ -367,7 +367,7 @@ class MeshRead:
     (the session's cache): co (V, 3), tris (T, 3), poly (T,), and when read, corner normals,
     corner UVs and per-triangle material slots.  Read-only: every scene using it shares it."""
 
-    __slots__ = ("key", "arrays", "attributes", "_local", "normals")
+    __slots__ = ("key", "arrays", "attributes", "_local", "normals", "finite")
 
     def __init__(self, key, group: "_Group", attributes):
         self.key = key
@@ -378,6 +378,7 @@ class MeshRead:
         self.attributes = frozenset(attributes)
         self._local = None
         self.normals = None  # (T, 3) unit object-space normals, made on first use (_local_normals)
+        self.finite = False  # every vertex checked finite (_leave_out_non_finite)
 
     def local_mesh(self) -> TriangleMesh:
         """The mesh in its own object space (a two-level scene's bottom level builds on it)."""
@@ -490,8 +491,12 @@ def _leave_out_non_finite(groups, names) -> list:
     later calls in this form: its group loses its cache key."""
     out = []
     for g in groups:
+        if g.read is not None and g.read.finite:
+            continue
         ok = np.isfinite(g.co).all(axis=1)
         if ok.all():
+            if g.read is not None:
+                g.read.finite = True  # checked once for every call that reuses the read
             continue
         keep = ok[g.tris].all(axis=1)
         g.co = np.where(ok[:, None], g.co, np.float32(0.0))  # no triangle uses them any more

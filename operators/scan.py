@@ -400,10 +400,11 @@ class _Echoes:
     structure: str
 
 
-def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure):
+def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure, budget):
     """Trace sub-rays ``dirs`` (unit) from ``origins`` in ``dg``: the first surface of each,
     then on through transmissive surfaces (up to ``MAX_PASSES``) and off mirror-like ones
-    (up to ``returns.max_bounces``), all rays of one generation in one cast."""
+    (up to ``returns.max_bounces``), all rays of one generation in one cast.  ``budget``:
+    the rays the structures serve (a frame's, over every block of a sweep)."""
     model, phys = settings.model, settings.returns
     cols = {k: [] for k in ("ray", "range", "cos", "reflectivity", "factor", "normals", "object_index",
                             "instance_index", "material_index")}
@@ -417,7 +418,7 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
         first = offset is None
         r = query.cast(o, d, depsgraph=dg, tmin=0.0 if first else tmin,
                        tmax=model.range_max if first else model.range_max - offset,
-                       structure=used, expected_rays=max(1, len(idx)),
+                       structure=used, expected_rays=max(1, budget),
                        **({"materials": True} if settings.materials else {}))
         rays += len(idx)
         used = r.structure
@@ -647,7 +648,7 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
             beam_poses[members] = bp
             o = np.repeat(bp[:, :3, 3], samples, axis=0)
             d = np.einsum("mij,mj->mi", np.repeat(bp[:, :3, :3], samples, axis=0), sub[ids])
-        e = _cast_echoes(dgb, ids, o, d, settings, used)
+        e = _cast_echoes(dgb, ids, o, d, settings, used, n_beams * samples)
         used = e.structure
         echoes.append(e)
     merged, objects, names, inst_m, mats = _merge(echoes)

@@ -222,6 +222,7 @@ class Session:
     _normals: object = None
     _per_triangle: object = None
     _tables: object = None
+    _described: object = None
     _materials: object = None
 
     @property
@@ -259,9 +260,10 @@ class Session:
         The lines between them are the paper's decision on each structure's life: a scene
         that stays put keeps its first session, where one flat structure traces fastest (a
         top level costs per ray; BENCHMARKS.md, "Two-level scenes"); what moved is rebuilt
-        flat when it has fewer triangles than the call has rays (``rays``: the build, linear
-        in triangles, costs less than the top level, linear in rays), else placed on two
-        levels, which builds nothing but the top level."""
+        flat when it has fewer triangles than the session's first batch has rays (``rays``:
+        the rays until the next change, as far as is known; the build, linear in triangles,
+        costs less than the top level, linear in rays), else placed on two levels, which
+        builds nothing but the top level."""
         if not self.changed and not self.instanced:
             return self.structure(kind, **config)
         cfg = tuple(sorted(config.items()))
@@ -315,7 +317,15 @@ class Session:
 
     def describe(self) -> dict:
         """How this session's scene is traced, in words and counts (for results and the
-        JSON): the parts of its structures, what each holds, and why it is built so."""
+        JSON): the parts of its structures, what each holds, and why it is built so; made
+        again only when the session builds another structure."""
+        if self._described is not None and self._described[0] == tuple(self.structures):
+            return self._described[1]
+        out = self._describe()
+        self._described = (tuple(self.structures), out)
+        return out
+
+    def _describe(self) -> dict:
         lay = self.layout
         unique = int(sum(len(g.tris) for g in lay.groups))
         out = {"placements": int(len(lay.placement_group)), "meshes": len(lay.groups),
@@ -327,8 +337,8 @@ class Session:
             kind = key[1]
             for i, (soup, glob, inst, _loc) in enumerate(acc.soups):
                 still = i == 0 and still_first
-                out["parts"].append({
-                    "kind": kind, "form": "flat", "placements": int(len(np.unique(inst))),
+                out["parts"].append({  # a soup holds whole placements in order: count the runs
+                    "kind": kind, "form": "flat", "placements": int(np.count_nonzero(np.diff(inst)) + 1) if len(inst) else 0,
                     "triangles": int(len(glob)),
                     "why": ("these placements stayed put since the last change: one flat structure, kept while "
                             "they do") if still else
@@ -504,7 +514,8 @@ class Session:
         ``core.InstanceHits``, decoded by ``decode``) wherever the flat mesh is not needed
         (the first plan of a scene traces flat).
         """
-        pick = self.structure if flat else (lambda kind, **c: self.tracer(kind, rays=budget, **c))
+        # the structures of a changed scene serve this session's rays: this batch's, until the next change
+        pick = self.structure if flat else (lambda kind, **c: self.tracer(kind, rays=len(o), **c))
         if structure != "auto":
             acc = pick("grid", **grid_config) if structure == "grid" else pick(structure)
             t0 = time.perf_counter()
