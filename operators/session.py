@@ -310,6 +310,7 @@ class Session:
                 return None
             mesh, glob, inst, local = made
             got = (core.build(mesh.prepare(), kind, **config), glob, inst, local)
+            got[0]._kept = True  # kept across sessions: its normals are worth making whole
         SOUPS[key] = got  # the newest last
         while len(SOUPS) > SOUPS_KEPT:
             SOUPS.pop(next(iter(SOUPS)))
@@ -390,11 +391,18 @@ class Session:
         poly[got] = poly_pool[at]
         soup = getattr(h, "soup", None)
         flat = np.zeros(len(got), bool) if soup is None else soup[got] >= 0
-        if flat.any():  # a soup's world normals, made once with it
+        if flat.any():  # a kept soup's world normals are made once with it, a rebuilt one's per hit
             rows = got[flat]
             for si in np.flatnonzero(np.bincount(soup[rows], minlength=len(h.soups))).tolist():
                 r = rows[soup[rows] == si]
-                n[r] = self._soup_normals(h.soups[si])[h.soup_triangle[r]]
+                acc = h.soups[si]
+                if getattr(acc, "_kept", False):
+                    n[r] = self._soup_normals(acc)[h.soup_triangle[r]]
+                else:
+                    tv = acc.mesh.tri_vertices[h.soup_triangle[r]].astype(np.float64)
+                    nn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        n[r] = nn / np.linalg.norm(nn, axis=1, keepdims=True)
         rest = ~flat
         if rest.any():
             g, ir = got[rest], i[rest]
