@@ -487,6 +487,8 @@ def gn_scene(n_side):
 
 def gn_instances(pkg, args):
     api, session = pkg.api, pkg.operators.session
+    if args.flat:  # heavy instancing no longer counts: the first call traces the flat soup
+        session.INSTANCED_FROM = float("inf")
     m = 4096 if args.small else 65536
     gn_scene(32 if args.small else 317)
     dg = bpy.context.evaluated_depsgraph_get()
@@ -513,7 +515,7 @@ def gn_instances(pkg, args):
         rec()
     mib = 1 << 20
     masked = " (the peak before was higher: run --scenario gn-instances alone)" if peak <= peak0 else ""
-    print(f"gn-instances: {n_inst:,} geometry-nodes instances of 10 meshes, {soup:,} triangles in the flat soup; "
+    print(f"gn-instances{' (flat)' if args.flat else ''}: {n_inst:,} geometry-nodes instances of 10 meshes, {soup:,} triangles in the flat soup; "
           f"extraction {t1 - t0:.3f} s, first cast (plan, structures) {t2 - t1:.3f} s ({r.structure}); "
           f"RSS before {base / mib:.0f} MiB, peak before {peak0 / mib:.0f} MiB, peak after {peak / mib:.0f} MiB, "
           f"growth {(peak - base) / mib:.0f} MiB{masked}; later casts median {med(ts):.4f} s")
@@ -537,6 +539,9 @@ def main(argv=None):
     ap.add_argument("--structure", default="auto", choices=("auto", "grid", "bvh", "embree"))
     ap.add_argument("--small", action="store_true", help="tiny sizes, for a smoke run")
     ap.add_argument("--memory", action="store_true", help="also gn-instances: peak RSS of a 100k-instance session")
+    ap.add_argument("--flat", action="store_true",
+                    help="gn-instances as a flat soup (no two levels from the first call), to compare memory and "
+                         "speed; run it in its own process")
     args = ap.parse_args(argv)
     if args.frames is not None and args.frames < 1 or args.loop_frames < 1:
         ap.error("--frames and --loop-frames must be at least 1")
