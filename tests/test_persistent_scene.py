@@ -273,3 +273,54 @@ def test_heavy_instancing_is_traced_on_two_levels_from_the_first_call(fresh, add
         assert abs(np.dot(p - a, n)) / area2 < 1e-4, f"ray {i}: our triangle is not in the hit's plane"
         w = [np.dot(np.cross(y - x, p - x), n) / area2 ** 2 for x, y in ((b, c), (c, a), (a, b))]
         assert min(w) > -1e-4, f"ray {i}: the hit point is outside our triangle (barycentrics {w})"
+
+
+def _assert_like_fresh_flat(addon, o, d, what):
+    """Every hit of the session's cast equals a fresh flat extraction traced by brute force."""
+    r = addon.api.cast(o, d, structure="bvh")
+    mesh, ref = _fresh_flat(addon, o, np.broadcast_to(d, o.shape))
+    assert np.array_equal(r.hit, ref.hit), f"{what}: hit differs on rays {np.flatnonzero(r.hit != ref.hit)[:10]}"
+    h = ref.hit
+    assert np.allclose(r.t[h], ref.t[h], rtol=1e-5, atol=1e-5), f"{what}: t differs"
+    same = r.triangle[h] == ref.triangle[h]
+    assert same.mean() > 0.99, f"{what}: {(~same).sum()} rays on another triangle"
+    k = ref.triangle[h][same]
+    assert np.array_equal(r.object_index[h][same], mesh.instances.instance_object[mesh.instance_index[k]]), what
+    return r
+
+
+def test_shared_meshes_swapped_data_and_new_instances_are_seen_at_the_next_call(fresh, addon):
+    scene = bpy.context.scene
+    add_plane("Ground", 20.0, z=-1.0)
+    a = add_cube("A", 1.0, (-2.0, 0.0, 0.0))
+    b = bpy.data.objects.new("B", a.data)  # a linked duplicate: one mesh, two objects
+    b.location = (2.0, 0.0, 0.0)
+    scene.collection.objects.link(b)
+    other = add_cube("Other", 1.6, (0.0, 5.0, 0.0))
+    bpy.context.view_layer.update()
+    rng = np.random.default_rng(9)
+    o = np.stack([rng.uniform(-4, 4, 1500), rng.uniform(-2, 7, 1500), np.full(1500, 6.0)], axis=1)
+    d = np.array([0.0, 0.0, -1.0])
+    _assert_like_fresh_flat(addon, o, d, "first call")
+    b.location.x += 0.5  # one of two placements of a shared mesh moved
+    _assert_like_fresh_flat(addon, o, d, "one instance moved")
+    co = np.empty(len(a.data.vertices) * 3, np.float32)
+    a.data.vertices.foreach_get("co", co)
+    co[2::3] *= 1.8  # the shared mesh edited: both objects grow
+    a.data.vertices.foreach_set("co", co)
+    a.data.update()
+    _assert_like_fresh_flat(addon, o, d, "shared mesh edited")
+    b.data = other.data  # an object's data swapped
+    _assert_like_fresh_flat(addon, o, d, "data swapped")
+    coll = bpy.data.collections.new("Props")
+    prop = add_cube("Prop", 0.7)
+    scene.collection.objects.unlink(prop)
+    coll.objects.link(prop)
+    for i in range(3):  # the instance count changes
+        e = bpy.data.objects.new(f"Props.{i}", None)
+        e.instance_type, e.instance_collection = "COLLECTION", coll
+        e.location = (-3.0 + 3.0 * i, 2.5, 0.0)
+        scene.collection.objects.link(e)
+        r = _assert_like_fresh_flat(addon, o, d, f"{i + 1} collection instances")
+    hit_instances = set(r.instance_index[r.hit & (r.object_names[np.maximum(r.object_index, 0)] != "Ground")])
+    assert len(hit_instances) >= 5, f"the new instances are not hit: {hit_instances}"
