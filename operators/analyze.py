@@ -185,6 +185,7 @@ def analysis_job(scene, job: Job, *, view_layer=None):
                         "measured": cal.source == "measured"}
     record = analysis_record(scene, summary, budget, settings, calibration_info, plan, started=started,
                              duration=time.perf_counter() - t0, embree_ok=core.embree.embree_available())
+    record["scene_structures"] = s.describe()  # how casts of this scene are traced now (flat, or in parts)
     yield 1.0, "done"
     return {"record": record, "mesh": mesh, "plan": plan, "summary": summary, "session": s, "body": body,
             "grid_config": grid_config, "view_layer": vl, "notes": notes, "calibration": cal}

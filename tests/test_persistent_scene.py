@@ -324,3 +324,13 @@ def test_shared_meshes_swapped_data_and_new_instances_are_seen_at_the_next_call(
         r = _assert_like_fresh_flat(addon, o, d, f"{i + 1} collection instances")
     hit_instances = set(r.instance_index[r.hit & (r.object_names[np.maximum(r.object_index, 0)] != "Ground")])
     assert len(hit_instances) >= 5, f"the new instances are not hit: {hit_instances}"
+
+
+def test_the_analysis_json_says_how_the_scene_is_traced(fresh, addon):
+    import json
+
+    scene, wave, mover, empty = _scene()
+    assert bpy.ops.hybrid_raycast.analyze() == {"FINISHED"}
+    rec = json.loads(scene.hybrid_raycast.last_analysis_json)
+    parts = rec["scene_structures"]["parts"]
+    assert rec["scene_structures"]["placements"] == 4 and parts and all(p["why"] for p in parts), rec["scene_structures"]
