@@ -38,6 +38,34 @@ MIN_SPLIT = 1 << 16
 LOCKSTEP_CHUNK = 1 << 20
 
 
+#: (process id, threads) -> the kept pool of that size (``Accel._in_pool``); made on first use
+_POOLS: dict = {}
+_POOLS_LOCK = threading.Lock()
+#: set in a kept pool's threads while they run a task
+_IN_POOL = threading.local()
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The kept pool of ``threads`` threads of this process (a forked child makes its own:
+    the parent's threads do not survive a fork)."""
+    key = (os.getpid(), threads)
+    with _POOLS_LOCK:
+        pool = _POOLS.get(key)
+        if pool is None:
+            pool = _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix=f"hrc-{threads}")
+        return pool
+
+
+def _pool_task(fn):
+    def run(x):
+        _IN_POOL.busy = True
+        try:
+            return fn(x)
+        finally:
+            _IN_POOL.busy = False
+    return run
+
+
 def default_threads() -> int:
     return max(1, min(8, os.cpu_count() or 1))
 
@@ -173,11 +201,13 @@ class Accel:
         return Hits(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "triangle", "u", "v")))
 
     def _in_pool(self, fn, items) -> list:
-        """[fn(x) for x in items], on a pool of ``threads`` threads when there are several."""
-        if self.threads <= 1 or len(items) <= 1:
+        """[fn(x) for x in items], on a pool of ``threads`` threads when there are several
+        (the process's pool of that size, kept: starting threads for every call cost as much
+        as a small trace; a call from one of its own threads runs inline, so work nested in
+        a pool task cannot wait on the pool it occupies)."""
+        if self.threads <= 1 or len(items) <= 1 or getattr(_IN_POOL, "busy", False):
             return [fn(x) for x in items]
-        with ThreadPoolExecutor(self.threads) as pool:
-            return list(pool.map(fn, items))
+        return list(_pool(self.threads).map(_pool_task(fn), items))
 
     # -- point queries (core/proximity.py) ------------------------------------------------
     def _point_parts(self, m: int) -> list[slice]:
