@@ -510,6 +510,16 @@ def _leave_out_non_finite(groups, names) -> list:
     return out
 
 
+#: the groups' mesh keys -> (poly pool, normal pool, group starts) of ``Layout.pools``, for the
+#: last few sets of meshes (the layouts of a scene whose objects move share them)
+_POOLS: dict = {}
+
+
+def forget():
+    """Drop what layouts share between calls (``session.clear`` on a file load)."""
+    _POOLS.clear()
+
+
 class Layout:
     """One extraction as unique meshes (``groups``, each in object space) and placements.
 
@@ -608,10 +618,20 @@ class Layout:
         int64 where each placement's group starts in them, inverse (I, 3, 3) float64
         inverse of each placement's linear part, mirrored (I,) bool: det < 0)."""
         if self._pools is None:
-            sizes = np.array([len(g.tris) for g in self.groups], np.int64)
-            start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-            poly = np.concatenate([g.poly for g in self.groups]) if self.groups else np.zeros(0, np.int32)
-            normal = np.concatenate([_local_normals(g) for g in self.groups]) if self.groups else np.zeros((0, 3), np.float32)
+            keys = tuple(g.key for g in self.groups)
+            kept = _POOLS.get(keys) if None not in keys else None
+            if kept is None:  # the same meshes as a layout before (a frame that moved things): theirs
+                sizes = np.array([len(g.tris) for g in self.groups], np.int64)
+                start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+                poly = np.concatenate([g.poly for g in self.groups]) if self.groups else np.zeros(0, np.int32)
+                normal = np.concatenate([_local_normals(g) for g in self.groups]) if self.groups \
+                    else np.zeros((0, 3), np.float32)
+                kept = (poly.astype(np.int32), normal, start)
+                if None not in keys:
+                    _POOLS[keys] = kept
+                    while len(_POOLS) > 4:
+                        _POOLS.pop(next(iter(_POOLS)))
+            poly, normal, start = kept
             a = self.matrices[:, :3, :3]
             with np.errstate(all="ignore"):
                 det = np.linalg.det(a)

@@ -45,7 +45,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from .. import core
-from .extract import NoGeometryError, scene_layout, scene_summary
+from .extract import NoGeometryError, forget, scene_layout, scene_summary
 from .jobs import InvalidGeometry, NoGeometry
 
 #: (scene pointer, view layer pointer, selected_only) -> Session
@@ -757,6 +757,7 @@ def clear():
     MESHES.clear()
     BOTTOMS.clear()
     SOUPS.clear()
+    forget()
     ANALYSED.clear()
     EDITS.clear()
 
