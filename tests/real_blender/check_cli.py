@@ -105,11 +105,16 @@ check("export exits 0 with a progress line per frame on stderr",
 import numpy as np  # noqa: E402  (Debian's numpy 2.x: the scene file is plain .npz, read without pickle)
 
 for frame in (1, 2):
+    # version 2 (instanced): each mesh once, end to end, and per instance its mesh; the scene's
+    # triangles are every instance's mesh's
     with np.load(WORK / "scenes" / f"frame_{frame:04d}.npz", allow_pickle=False) as z:
-        check(f"export frame {frame}: a scene file with the analyzed triangles",
-              str(z["format"]) == "hybrid_raycast.scene" and int(z["frame"]) == frame
-              and z["vertices"].dtype == np.float32 and len(z["triangles"]) == doc["summary"]["triangles"]
-              and len(z["object_index"]) == len(z["triangles"]), f"{len(z['triangles'])} triangles")
+        per_mesh = np.diff(z["mesh_triangle_start"].astype(np.int64))  # (K + 1,) offsets
+        placed = int(per_mesh[z["instance_mesh"]].sum())
+        check(f"export frame {frame}: a scene file with the analyzed triangles, each mesh once",
+              str(z["format"]) == "hybrid_raycast.scene" and int(z["version"]) == 2 and int(z["frame"]) == frame
+              and z["mesh_vertices"].dtype == np.float32 and placed == doc["summary"]["triangles"]
+              and len(z["instance_matrix"]) == len(z["instance_mesh"])
+              and len(z["mesh_triangles"]) <= placed, f"{placed} triangles placed")
 
 code, out, err, p = blender(None, "calibrate", "--scale", "tiny", "--calibration", str(WORK / "cli_cal.json"))
 check("calibrate exits 0 and writes the file", code == 0 and (WORK / "cli_cal.json").is_file(), f"rc={code} {err}")
