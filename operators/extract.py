@@ -515,9 +515,14 @@ def _leave_out_non_finite(groups, names) -> list:
 _POOLS: dict = {}
 
 
+#: the same for ``Layout.material_pool``, keyed by the meshes and their slot tables' materials
+_MATERIAL_POOLS: dict = {}
+
+
 def forget():
     """Drop what layouts share between calls (``session.clear`` on a file load)."""
     _POOLS.clear()
+    _MATERIAL_POOLS.clear()
 
 
 class Layout:
@@ -644,21 +649,33 @@ class Layout:
         of per-triangle material indices, placement_base (I,) int64 where each placement's
         group-and-table run starts), for hits without the flat mesh; as ``flat()`` resolves them."""
         if self._materials is None:
-            found, found_at, runs, base_of, n = [], {}, [], {}, 0
-            for gi, g in enumerate(self.groups):
-                for ti, tab in enumerate(g.slot_tables):
-                    runs.append(_slot_materials(g.slots, tab, found, found_at))
-                    base_of[(gi, ti)] = n
-                    n += len(g.tris)
-            pool = np.concatenate(runs) if runs else np.zeros(0, np.int32)
+            # the same meshes under the same slot tables as a layout before: its pool
+            keys = tuple((g.key, tuple(tuple((m.as_pointer(), m.session_uid) if m is not None else 0 for m in tab)
+                                       for tab in g.slot_tables)) for g in self.groups)
+            cacheable = all(k[0] is not None for k in keys)
+            kept = _MATERIAL_POOLS.get(keys) if cacheable else None
+            if kept is None:
+                found, found_at, runs, base_of, n = [], {}, [], {}, 0
+                for gi, g in enumerate(self.groups):
+                    for ti, tab in enumerate(g.slot_tables):
+                        runs.append(_slot_materials(g.slots, tab, found, found_at))
+                        base_of[(gi, ti)] = n
+                        n += len(g.tris)
+                pool = np.concatenate(runs) if runs else np.zeros(0, np.int32)
+                used = np.bincount(pool + 1, minlength=len(found) + 1)[1:] > 0
+                remap = np.full(len(found) + 1, -1, np.int32)
+                remap[:-1][used] = np.arange(int(used.sum()), dtype=np.int32)
+                kept = ([m for m, u in zip(found, used) if u], remap[pool], base_of)
+                if cacheable:
+                    _MATERIAL_POOLS[keys] = kept
+                    while len(_MATERIAL_POOLS) > 4:
+                        _MATERIAL_POOLS.pop(next(iter(_MATERIAL_POOLS)))
+            materials, pool, base_of = kept
             tables = np.concatenate([np.asarray(g.slot_table_of, np.int64) for g in self.groups]) \
                 if self.groups else np.zeros(0, np.int64)
             base = np.array([base_of.get((int(gi), int(ti)), 0) for gi, ti in zip(self.placement_group, tables)],
                             np.int64) if len(tables) == len(self.placement_group) else np.zeros(0, np.int64)
-            used = np.bincount(pool + 1, minlength=len(found) + 1)[1:] > 0
-            remap = np.full(len(found) + 1, -1, np.int32)
-            remap[:-1][used] = np.arange(int(used.sum()), dtype=np.int32)
-            self._materials = ([m for m, u in zip(found, used) if u], remap[pool], base)
+            self._materials = (materials, pool, base)
         return self._materials
 
     def displacement(self, other: "Layout") -> float:
