@@ -85,6 +85,8 @@ faster than ``loop_triangles.foreach_get``.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -114,6 +116,7 @@ class SourceInfo:
     root_objects: int = 0  # distinct top-level objects contributing triangles
     meshes_read: int = 0  # distinct evaluated meshes read (each once, however often placed)
     seconds: float = 0.0
+    walk_length: int = 0  # entries of depsgraph.object_instances the extraction walked
 
 
 # -- reading one evaluated mesh -------------------------------------------------------
@@ -554,8 +557,39 @@ class Layout:
         self._flat = self._pools = self._materials = None
         #: [(source names, triangles left out)] of meshes with NaN or infinite vertices
         self.left_out = []
+        #: (I,) each placement's entry in depsgraph.object_instances, for ``read_matrices``
+        self.where = np.concatenate([np.asarray(g.where, np.int64) for g in groups]) if groups \
+            else np.zeros(0, np.int64)
+        self.derived = False  # a copy with other matrices (``with_matrices``): it has no flat mesh
+
+    def with_matrices(self, matrices) -> "Layout":
+        """The same meshes and placements, placed by ``matrices`` (I, 4, 4) world: what a
+        scene whose objects only moved rigidly looks like at another time.  It traces on
+        two levels; it has no flat mesh (its groups keep the first placement's matrices)."""
+        out = copy.copy(self)
+        out.matrices = np.asarray(matrices, np.float64)
+        out.instances = dataclasses.replace(self.instances, matrices=out.matrices)
+        out._flat = out._pools = None
+        out.derived = True
+        return out
+
+    def read_matrices(self, depsgraph):
+        """(I, 4, 4) float64 world matrices of this layout's placements in ``depsgraph`` as
+        evaluated now, read in one ``foreach_get``; None when its instance walk has another
+        length (something was added, removed or re-instanced: extract again)."""
+        count = len(depsgraph.object_instances)
+        if count != self.info.walk_length:
+            return None
+        flat = np.empty(count * 16, np.float32)
+        try:
+            depsgraph.object_instances.foreach_get("matrix_world", flat)
+        except (RuntimeError, TypeError, ValueError):
+            return None
+        return flat.reshape(count, 4, 4)[self.where].transpose(0, 2, 1).astype(np.float64)
 
     def flat(self, progress=None) -> TriangleMesh:
+        if self.derived:
+            raise RuntimeError("a layout with moved placements (Layout.with_matrices) has no flat mesh")
         if self._flat is None:
             mesh = _assemble(self.groups, self.names, progress, self.entry_obj, self.attributes)
             mesh.source_info = self.info
@@ -573,9 +607,10 @@ class Layout:
             return self._flat.bounds()
         lo = np.full(3, np.inf, np.float32)
         hi = np.full(3, -np.inf, np.float32)
-        for g in self.groups:
-            co, m = g.co, g.matrices  # column-major rows, as _assemble reads them
-            if not len(co) or not len(g.where):
+        for gi, g in enumerate(self.groups):
+            # column-major rows in float32, as _assemble reads them (this layout's matrices)
+            co, m = g.co, self.matrices[self.placement_group == gi].transpose(0, 2, 1).astype(np.float32)
+            if not len(co) or not len(m):
                 continue
             mask = np.zeros(len(co), bool)
             mask[g.tris] = True
@@ -677,6 +712,16 @@ class Layout:
                             np.int64) if len(tables) == len(self.placement_group) else np.zeros(0, np.int64)
             self._materials = (materials, pool, base)
         return self._materials
+
+    def rigid_to(self, other: "Layout") -> bool:
+        """Whether ``other`` (the same scene at another time) has the same placements of the
+        same meshes (kept, by key), in the same instance walk: only their matrices can differ."""
+        return (len(self.placement_group) == len(other.placement_group)
+                and self.info.walk_length == other.info.walk_length
+                and np.array_equal(self.tri_base, other.tri_base) and np.array_equal(self.where, other.where)
+                and all(a.key is not None and a.key == b.key for a, b in zip(
+                    (self.groups[g] for g in self.placement_group.tolist()),
+                    (other.groups[g] for g in other.placement_group.tolist()))))
 
     def displacement(self, other: "Layout") -> float:
         """The largest distance any vertex moves from this layout to ``other`` (the same
@@ -898,6 +943,7 @@ def _collect(depsgraph, vl, selected_only, progress, attributes=(), cache=None, 
     info.triangles = tris[live].tolist()
     info.root_objects = len(entry_roots)
     info.meshes_read = len(groups)
+    info.walk_length = n + 1  # entries of depsgraph.object_instances walked (Layout.read_matrices)
     if progress is not None:
         progress(0.5)
     return kept, names, info, entry_obj

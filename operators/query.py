@@ -211,7 +211,7 @@ class _Call:
     """What every query shares: checked arguments, the session, the decision inputs."""
 
     def __init__(self, origins, directions, tmin, tmax, *, depsgraph, expected_rays, selected_only, samples,
-                 structure, attributes=(), strict=False):
+                 structure, attributes=(), strict=False, session_=None):
         import bpy
 
         from . import session
@@ -241,8 +241,9 @@ class _Call:
             session.check_depsgraph(depsgraph)
             depsgraph.update()
         props = depsgraph.scene.hybrid_raycast
-        self.session = session.get(depsgraph, props, selected_only=bool(selected_only), attributes=attributes,
-                                   strict=bool(strict))
+        # session_: a session made elsewhere for this depsgraph's scene (session.moved: a sweep's block)
+        self.session = session_ if session_ is not None else session.get(
+            depsgraph, props, selected_only=bool(selected_only), attributes=attributes, strict=bool(strict))
         s = self.session
         self.samples = samples or props.sample_rays
         self.grid_config = {"density": float(props.grid_density)}
@@ -318,7 +319,7 @@ def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
          selected_only: bool = False, samples: int | None = None, structure: str = "auto",
          smooth: bool = False, uv: bool = False, materials: bool = False, progress=None,
-         strict: bool = False) -> CastResult:
+         strict: bool = False, session_=None) -> CastResult:
     """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
 
     origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
@@ -333,6 +334,8 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     materials: also return each hit's material (``material_index``, ``materials``,
         ``material_names``); the first such cast of a session reads the meshes' slots once.
     progress: called as progress(rays_done, rays_total) after each chunk.
+    session_: internal (the sensor sweep): trace with this ``session.Session`` instead of the
+        depsgraph's.
     strict: raise InvalidGeometry when an object has NaN or infinite vertex coordinates;
         by default its bad triangles are left out with one ``RuntimeWarning`` naming the
         object and the count, and the rest is traced (as ``scene.ray_cast`` does).
@@ -342,7 +345,7 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ()) + (("material",) if materials else ())
     call = _Call(origins, directions, tmin, tmax, depsgraph=depsgraph, expected_rays=expected_rays,
                  selected_only=selected_only, samples=samples, structure=structure, attributes=attributes,
-                 strict=strict)
+                 strict=strict, session_=session_)
     s, m = call.session, call.m
     objects, names = s.tables()
     inst = s.mesh.instances if (smooth or uv) else s.layout.instances

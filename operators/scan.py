@@ -284,7 +284,9 @@ class ScanResult:
     ray: int64 index of each point's beam in the frame's pattern (``sensor_model(ob)[0].pattern()``);
     sensor_matrix: (4, 4) the sensor's world pose at the start of the sweep (rotation and
     translation, no scale); rays: rays cast (sub-rays of every beam, and the rays that
-    went on through glass or off mirrors); frame; space; blocks: the sweep's blocks (1 for FRAME).
+    went on through glass or off mirrors); frame; space; blocks: the sweep's blocks (1 for FRAME);
+    extra['rigid_blocks']: blocks traced by moving the first block's placements (a sweep in
+    which only placements move reads their matrices at each block's time and extracts nothing).
     """
 
     points: np.ndarray
@@ -400,11 +402,12 @@ class _Echoes:
     structure: str
 
 
-def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure, budget):
+def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure, budget, session_=None):
     """Trace sub-rays ``dirs`` (unit) from ``origins`` in ``dg``: the first surface of each,
     then on through transmissive surfaces (up to ``MAX_PASSES``) and off mirror-like ones
     (up to ``returns.max_bounces``), all rays of one generation in one cast.  ``budget``:
-    the rays the structures serve (a frame's, over every block of a sweep)."""
+    the rays the structures serve (a frame's, over every block of a sweep); ``session_``: the
+    session to trace with instead of the depsgraph's (``session.moved``: a rigid sweep's block)."""
     model, phys = settings.model, settings.returns
     cols = {k: [] for k in ("ray", "range", "cos", "reflectivity", "factor", "normals", "object_index",
                             "instance_index", "material_index")}
@@ -418,7 +421,7 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
         first = offset is None
         r = query.cast(o, d, depsgraph=dg, tmin=0.0 if first else tmin,
                        tmax=model.range_max if first else model.range_max - offset,
-                       structure=used, expected_rays=max(1, budget),
+                       structure=used, expected_rays=max(1, budget), session_=session_,
                        **({"materials": True} if settings.materials else {}))
         rays += len(idx)
         used = r.structure
@@ -600,6 +603,7 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     dg = depsgraph if depsgraph is not None else session.evaluated(scene, vl)
     pose0 = sensor_pose(ob.evaluated_get(dg))
     pose_times, poses = [0.0], [pose0]
+    rigid = None  # (the sweep start's layout, (I,) placements that stay put) when only placements move
     if sweep.motion == "FRAME" or duration <= 0:
         plan = [(np.arange(n_beams), None)]  # None: the depsgraph as it is
     else:
@@ -610,14 +614,19 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         cap = min(sweep.max_blocks, len(np.unique(pat.time)))
         if _brings_no_triangles(ob) and _static_but(body0, session.fingerprint(dg_end)[1], ob.original.as_pointer()):
             n_blocks = 1  # nothing but the sensor moves: one block, every ray from its own pose
-        elif sweep.blocks:
-            n_blocks = min(sweep.blocks, cap)
         else:
             end = _layout(dg_end)
             start = _layout(_evaluate_at(scene, vl, frame, 0.0))
-            # inf when the topology changed within the sweep: as many blocks as allowed
-            disp = start.displacement(end) if start is not None and end is not None else np.inf
-            n_blocks = motion.blocks_for(disp, sweep.tolerance, cap)
+            if start is not None and end is not None and start.rigid_to(end):
+                # the same meshes throughout, only moved: later blocks read the placements'
+                # matrices at their time and trace the first block's meshes placed so
+                rigid = (start, (start.matrices == end.matrices).all(axis=(1, 2)))
+            if sweep.blocks:
+                n_blocks = min(sweep.blocks, cap)
+            else:
+                # inf when the topology changed within the sweep: as many blocks as allowed
+                disp = start.displacement(end) if start is not None and end is not None else np.inf
+                n_blocks = motion.blocks_for(disp, sweep.tolerance, cap)
         if n_blocks == 1:
             plan = [(np.arange(n_beams), 0.0)]
         else:
@@ -628,10 +637,18 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     one_pose = len(pose_times) == 1  # FRAME: one pose for every beam
     beam_poses = None if one_pose else np.empty((n_beams, 4, 4))
     used = structure
+    base = None  # the first block's session, when the sweep is rigid
+    rigid_blocks = 0
     for members, at in plan:
         dgb = dg
+        moved = None
         if at is not None:
             dgb = _evaluate_at(scene, vl, frame, at)
+            if rigid is not None and base is not None:
+                m = rigid[0].read_matrices(dgb)
+                if m is not None:
+                    moved = session.moved(base, rigid[0].with_matrices(m), rigid[1])
+                    rigid_blocks += 1
             if at not in pose_times:
                 i = int(np.searchsorted(pose_times, at))
                 pose_times.insert(i, at)
@@ -648,9 +665,11 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
             beam_poses[members] = bp
             o = np.repeat(bp[:, :3, 3], samples, axis=0)
             d = np.einsum("mij,mj->mi", np.repeat(bp[:, :3, :3], samples, axis=0), sub[ids])
-        e = _cast_echoes(dgb, ids, o, d, settings, used, n_beams * samples)
+        e = _cast_echoes(dgb, ids, o, d, settings, used, n_beams * samples, moved)
         used = e.structure
         echoes.append(e)
+        if rigid is not None and base is None:
+            base = session.get(dgb, strict=False)
     merged, objects, names, inst_m, mats = _merge(echoes)
     meas = returns.measure_returns(merged.ray, merged.range, merged.cos, merged.reflectivity, merged.factor,
                                    beams=n_beams, samples=samples, weights=weights, sensor=model, returns=phys,
@@ -702,7 +721,8 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
                       instance_matrices=inst_m, ray=beam.astype(np.int64), sensor_matrix=pose0,
                       rays=merged.rays, frame=frame, space=space, structure=used, cos_incidence=cos,
                       return_index=meas.return_index, return_count=meas.return_count, material_index=mat,
-                      materials=mat_arr, material_names=mat_names, classification=cls, blocks=len(plan))
+                      materials=mat_arr, material_names=mat_names, classification=cls, blocks=len(plan),
+                      extra={"rigid_blocks": rigid_blocks})
 
 
 def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -> ScanResult:

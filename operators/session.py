@@ -640,6 +640,18 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     return s
 
 
+def moved(base: Session, layout, still) -> Session:
+    """A session for ``layout``, the base session's scene with its placements moved
+    (``extract.Layout.with_matrices``), e.g. a sweep's later instant: it shares the base's
+    meshes, structures' bottoms and decision, and traces on two levels, the ``still``
+    placements (I,) bool in one kept flat structure.  It is not stored: the next ``get``
+    compares the depsgraph as usual."""
+    s = Session(base.key, base.head, base.body, layout, base._summary, base.attributes, changed=True)
+    s.still = np.asarray(still, bool)
+    s.plan, s.chosen, s.calibration, s.kinds = base.plan, base.chosen, base.calibration, base.kinds
+    return s
+
+
 def _placement_ids(layout) -> list:
     return [(layout.groups[g].key, m.tobytes()) for g, m in zip(layout.placement_group.tolist(), layout.matrices)]
 

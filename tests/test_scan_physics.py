@@ -104,6 +104,7 @@ def test_sweep_skew_of_a_wall_passing_at_10_m_s_matches_the_analytic_skew(fresh,
     analytic = 10.0 * (t.max() - t.min())
     assert abs(skew - analytic) <= 0.01, f"measured skew {skew:.4f} m, analytic {analytic:.4f} m"
     assert r.blocks >= 90, f"{r.blocks} blocks cannot hold a 1 m sweep motion within 1 cm"
+    assert r.extra["rigid_blocks"] == r.blocks - 1, "a wall that only moves: every block after the first moves it"
     sensor.hybrid_raycast_sensor.motion = "FRAME"
     f = addon.api.scan(sensor)
     fon = f.object_names[f.object_index] == "Wall"
@@ -264,3 +265,26 @@ def test_clutter_range_below_range_min_is_refused_before_the_scan(fresh, addon):
     scene, sensor = _sensor(false_return_rate=0.1, false_return_range=0.2, range_min=0.5)
     with pytest.raises(ValueError, match="false_return_range"):
         addon.operators.scan.sensor_settings(sensor)
+
+
+def test_a_rigid_sweep_moving_its_placements_equals_one_evaluated_block_by_block(fresh, addon, monkeypatch):
+    """Later blocks of a sweep where objects only move read the placements' matrices and move
+    the first block's meshes; every field equals the sweep that extracts each block anew."""
+    scene, sensor = _sensor(channels=8, fov_up=10.0, fov_down=-10.0, azimuth_steps=360, motion="SWEEP",
+                            sweep_tolerance=0.05)
+    _wall("Wall", 10.0)
+    mover = add_plane("Mover", 3.0, z=0.0, location=(0.0, 6.0, 0.0))
+    mover.rotation_euler = (1.2, 0.3, 0.0)
+    mover.scale = (1.0, 2.0, 1.0)  # a non-uniform scale: normals by the inverse transpose
+    _animate(mover, "location", 0, -6.0, 6.0, frames=(1, 1 + FPS))
+    add_plane("Ground", 60.0, z=-1.5)
+    scene.frame_set(1)
+    fast = addon.api.scan(sensor)
+    assert fast.extra["rigid_blocks"] == fast.blocks - 1 > 0
+    monkeypatch.setattr(addon.operators.extract.Layout, "rigid_to", lambda self, other: False)
+    slow = addon.api.scan(sensor)
+    assert slow.extra["rigid_blocks"] == 0 and slow.blocks == fast.blocks
+    assert np.array_equal(fast.ray, slow.ray), "another set of beams returned"
+    assert np.allclose(fast.points, slow.points, atol=1e-4)
+    assert np.allclose(fast.normals, slow.normals, atol=1e-4)
+    assert np.array_equal(fast.point_object_names, slow.point_object_names)
