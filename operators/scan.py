@@ -585,8 +585,10 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
 
     FRAME motion: every ray against the scene and the sensor pose of the frame.  SWEEP: the
     rays are cut into blocks of consecutive firing times (``core.motion``); each block is
-    traced against the scene evaluated at its middle time, every ray from the sensor pose
-    at its own firing time (interpolated between evaluated poses).  The scene is left at a
+    traced against the scene evaluated at its middle time (where only placements move over
+    the sweep, the first block's meshes moved to the placements' matrices at that time:
+    ``session.moved``), every ray from the sensor pose at its own firing time (interpolated
+    between evaluated poses).  The scene is left at a
     time within the sweep: callers restore the frame.  ``structure`` as ``api.cast``; the
     first block's choice serves the later ones.
     """
