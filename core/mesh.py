@@ -137,3 +137,34 @@ class TriangleMesh:
 
     def __repr__(self):
         return f"TriangleMesh({len(self.vertices)} vertices, {self.triangle_count} triangles, {len(self.object_names)} objects)"
+
+
+def unit_normals(tri_vertices) -> np.ndarray:
+    """(T, 3) float32 unit geometric normals, cross(v1 - v0, v2 - v0) / |...| in float64, of
+    (T, 3, 3) triangle corners (NaN for a degenerate triangle)."""
+    tv = np.asarray(tri_vertices, np.float64)
+    n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+
+
+def place(vertices, triangles, column_major, vertex_base, out_vertices=None, out_triangles=None):
+    """k placements of one mesh in world space, as Blender places it: (world vertices (k, V, 3)
+    float32, triangles (k, T, 3) int32, mirrored (k,) bool).
+
+    column_major: (k, 4, 4) float32 matrices as ``object_instances.foreach_get('matrix_world')``
+    reads them (``[:, :3, :3]`` is A^T, ``[:, 3, :3]`` the translation b); world = v A^T + b in
+    float32, one batched product, so every caller rounds alike.  vertex_base: (k,) the index
+    of each placement's first vertex in the caller's vertex array.  A mirrored placement
+    (det A < 0, in float64) has two corners of every triangle swapped, [0, 2, 1], so the
+    winding stays as the mesh's.  ``out_vertices`` / ``out_triangles``: arrays to fill."""
+    k, nv, nt = len(column_major), len(vertices), len(triangles)
+    w = out_vertices if out_vertices is not None else np.empty((k, nv, 3), np.float32)
+    np.matmul(vertices, column_major[:, :3, :3], out=w)
+    w += column_major[:, None, 3, :3]
+    t = out_triangles if out_triangles is not None else np.empty((k, nt, 3), np.int32)
+    np.add(triangles, np.asarray(vertex_base).astype(np.int32)[:, None, None], out=t)
+    mirrored = np.linalg.det(column_major[:, :3, :3].astype(np.float64)) < 0
+    if mirrored.any():
+        t[mirrored] = t[mirrored][:, :, [0, 2, 1]]
+    return w, t, mirrored

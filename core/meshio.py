@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
-from .mesh import TriangleMesh
+from .mesh import TriangleMesh, place
 
 FORMAT = "hybrid_raycast.scene"
 #: the flat form (``save_mesh``)
@@ -173,10 +173,10 @@ class InstancedScene:
     def flat(self) -> TriangleMesh:
         """The world-space TriangleMesh, made once: instance i's triangles at global
         indices tri_base[i]..+T, its vertices in the same order, ``world = v @ A^T + b``
-        in float32 (one batched matmul per mesh, as ``operators/extract.py`` ``_assemble``
-        does, so the rounding is the same), a mirrored instance's corners swapped [0, 2,
-        1]; object_index, polygon_index (when every mesh has one) and instance_index per
-        triangle.  ValueError when the vertices pass the int32 range of triangle indices."""
+        in float32 (``core.mesh.place``, as the extraction places them, so the rounding is
+        the same), a mirrored instance's corners swapped [0, 2, 1]; object_index,
+        polygon_index (when every mesh has one) and instance_index per triangle.  ValueError
+        when the vertices pass the int32 range of triangle indices."""
         if self._flat is not None:
             return self._flat
         n = self.instance_count
@@ -196,21 +196,14 @@ class InstancedScene:
         with_poly = all(m.polygon_index is not None for m in self.meshes)
         polygon_index = np.empty(nt, np.int32) if with_poly else None
         cm = self._column_major32()
-        neg_all = self.mirrored
         for k, mesh in enumerate(self.meshes):  # a loop per unique mesh; its instances batched
             idx = np.flatnonzero(self.instance_mesh == k)
             V, T = len(mesh.vertices), mesh.triangle_count
             if not idx.size:
                 continue
-            m = np.ascontiguousarray(cm[idx])
-            w = np.matmul(mesh.vertices, m[:, :3, :3])  # (k, V, 3) float32, as _assemble
-            w += m[:, None, 3, :3]
+            w, t, _ = place(mesh.vertices, mesh.triangles, np.ascontiguousarray(cm[idx]), vbase[idx])
             vertices[(vbase[idx][:, None] + np.arange(V)).reshape(-1)] = w.reshape(-1, 3)
             rows = (self.tri_base[idx][:, None] + np.arange(T)).reshape(-1)
-            t = mesh.triangles[None] + vbase[idx][:, None, None].astype(np.int32)
-            neg = neg_all[idx]
-            if neg.any():
-                t[neg] = t[neg][:, :, [0, 2, 1]]
             triangles[rows] = t.reshape(-1, 3)
             object_index[rows] = np.repeat(self.instance_object[idx], T)
             instance_index[rows] = np.repeat(idx.astype(np.int32), T)

@@ -92,7 +92,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.mesh import TriangleMesh
+from ..core.mesh import TriangleMesh, place, unit_normals
 
 __all__ = ["InstanceTable", "Layout", "MeshRead", "NoGeometryError", "SourceInfo", "mesh_key", "scene_layout",
            "scene_mesh", "scene_summary", "mesh_triangles"]
@@ -631,25 +631,26 @@ class Layout:
         (Ts,) int32) of the given placements' triangles, laid out and rounded as ``flat()``
         lays them (float32 products, mirrored corners swapped), in increasing global order."""
         placements = np.sort(np.asarray(placements, np.int64))
-        verts, tris, glob, inst, local = [], [], [], [], []
-        v0 = 0
-        for i in placements.tolist():
-            g = self.groups[self.placement_group[i]]
-            m = self.matrices[i].T.astype(np.float32)  # column-major, as _assemble reads it
-            verts.append(g.co @ m[:3, :3] + m[3, :3])
-            t = g.tris + v0
-            if np.linalg.det(self.matrices[i, :3, :3]) < 0:
-                t = t[:, [0, 2, 1]]
-            tris.append(t)
-            n = len(g.tris)
-            glob.append(self.tri_base[i] + np.arange(n, dtype=np.int64))
-            inst.append(np.full(n, i, np.int32))
-            local.append(np.arange(n, dtype=np.int32))
-            v0 += len(g.co)
-        if not tris:
+        if not len(placements):
             return None
-        mesh = TriangleMesh(np.concatenate(verts).astype(np.float32), np.concatenate(tris).astype(np.int32))
-        return mesh, np.concatenate(glob), np.concatenate(inst), np.concatenate(local)
+        # the placements in global order are runs of one group each (the flat order: group by group)
+        groups = self.placement_group[placements]
+        cuts = np.flatnonzero(np.diff(groups)) + 1
+        verts, tris = [], []
+        v0 = 0
+        for run in np.split(placements, cuts):
+            g = self.groups[self.placement_group[run[0]]]
+            cm = self.matrices[run].transpose(0, 2, 1).astype(np.float32)  # as _assemble reads them
+            w, t, _ = place(g.co, g.tris, cm, v0 + len(g.co) * np.arange(len(run)))
+            verts.append(w.reshape(-1, 3))
+            tris.append(t.reshape(-1, 3))
+            v0 += len(run) * len(g.co)
+        n = np.array([len(self.groups[gi].tris) for gi in groups.tolist()], np.int64)
+        start = np.repeat(np.cumsum(n) - n, n)
+        within = np.arange(int(n.sum()), dtype=np.int64) - start
+        mesh = TriangleMesh(np.concatenate(verts), np.concatenate(tris))
+        return (mesh, np.repeat(self.tri_base[placements], n) + within, np.repeat(placements, n).astype(np.int32),
+                within.astype(np.int32))
 
     def pools(self):
         """What a hit on (placement, local triangle) needs without the flat mesh, made once:
@@ -760,13 +761,10 @@ class Layout:
 
 def _local_normals(g) -> np.ndarray:
     """(T, 3) float32 unit geometric normals of a group's triangles in object space
-    (float64 cross products; NaN for a degenerate triangle), kept with its cached read."""
+    (``core.mesh.unit_normals``), kept with its cached read."""
     if g.read is not None and g.read.normals is not None:
         return g.read.normals
-    tv = g.co[g.tris].astype(np.float64)
-    n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+    n = unit_normals(g.co[g.tris])
     if g.read is not None:
         n.flags.writeable = False
         g.read.normals = n
@@ -990,15 +988,9 @@ def _assemble(groups, names, progress=None, entry_obj=None, attributes=()) -> Tr
     for g in groups:
         k, V, T = len(g.where), len(g.co), len(g.tris)
         m = g.matrices  # column-major: m[:, :3, :3] is R transposed, m[:, 3, :3] the translation
-        out_v = vertices[v0:v0 + k * V].reshape(k, V, 3)
-        # world = v @ R^T + t, all k placements in one batched matmul (float32 throughout)
-        np.matmul(g.co, m[:, :3, :3], out=out_v)
-        out_v += m[:, None, 3, :3]
-        out_t = triangles[f0:f0 + k * T].reshape(k, T, 3)
-        np.add(g.tris, (v0 + V * np.arange(k, dtype=np.int32))[:, None, None], out=out_t)
-        neg = np.linalg.det(m[:, :3, :3].astype(np.float64)) < 0
-        if neg.any():  # a mirrored placement turns the winding; swap two corners back
-            out_t[neg] = out_t[neg][:, :, [0, 2, 1]]
+        # all k placements in one batched matmul (float32 throughout), mirrored ones' corners swapped
+        _, _, neg = place(g.co, g.tris, m, v0 + V * np.arange(k), out_vertices=vertices[v0:v0 + k * V].reshape(k, V, 3),
+                          out_triangles=triangles[f0:f0 + k * T].reshape(k, T, 3))
         object_index[f0:f0 + k * T].reshape(k, T)[:] = np.asarray(g.entries, np.int32)[:, None]
         polygon_index[f0:f0 + k * T].reshape(k, T)[:] = g.poly
         instance_index[f0:f0 + k * T].reshape(k, T)[:] = np.arange(i0, i0 + k, dtype=np.int32)[:, None]

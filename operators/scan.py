@@ -559,18 +559,6 @@ def _evaluate_at(scene, view_layer, frame: int, seconds: float):
     return session.evaluated(scene, view_layer)
 
 
-def _static_but(a_body, b_body, sensor_ptr) -> bool:
-    """Whether two fingerprint bodies differ at most in the sensor's own entry (an object
-    that brings no triangles: its matrix moves no surface)."""
-    if len(a_body) != len(b_body) or a_body[0] != b_body[0]:
-        return False
-    return all(x == y or (x[0] == sensor_ptr and y[0] == sensor_ptr) for x, y in zip(a_body[1:], b_body[1:]))
-
-
-def _brings_no_triangles(ob) -> bool:
-    return ob.type in ("EMPTY", "CAMERA", "LIGHT") and ob.instance_type == "NONE"
-
-
 def _layout(dg):
     """The session's layout of the scene as evaluated now (meshes kept across calls), or None."""
     try:
@@ -614,8 +602,10 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         pose_times.append(duration)
         poses.append(sensor_pose(ob.evaluated_get(dg_end)))
         cap = min(sweep.max_blocks, len(np.unique(pat.time)))
-        if _brings_no_triangles(ob) and _static_but(body0, session.fingerprint(dg_end)[1], ob.original.as_pointer()):
-            n_blocks = 1  # nothing but the sensor moves: one block, every ray from its own pose
+        if session.fingerprint(dg_end)[1] == body0:
+            # nothing with triangles changed (a sensor that brings none is not in the body):
+            # one block, every ray from its own pose
+            n_blocks = 1
         else:
             end = _layout(dg_end)
             start = _layout(_evaluate_at(scene, vl, frame, 0.0))

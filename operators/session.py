@@ -45,6 +45,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from .. import core
+from ..core.mesh import unit_normals
 from .extract import NoGeometryError, forget, scene_layout, scene_summary
 from .jobs import InvalidGeometry, NoGeometry
 
@@ -397,12 +398,11 @@ class Session:
                 r = rows[soup[rows] == si]
                 acc = h.soups[si]
                 if getattr(acc, "_kept", False):
-                    n[r] = self._soup_normals(acc)[h.soup_triangle[r]]
+                    if getattr(acc, "_normals", None) is None:
+                        acc._normals = unit_normals(acc.mesh.tri_vertices)
+                    n[r] = acc._normals[h.soup_triangle[r]]
                 else:
-                    tv = acc.mesh.tri_vertices[h.soup_triangle[r]].astype(np.float64)
-                    nn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        n[r] = nn / np.linalg.norm(nn, axis=1, keepdims=True)
+                    n[r] = unit_normals(acc.mesh.tri_vertices[h.soup_triangle[r]])
         rest = ~flat
         if rest.any():
             g, ir = got[rest], i[rest]
@@ -414,20 +414,9 @@ class Session:
             u[swap], v[swap] = h.v[swap], h.u[swap]
         return obj, ins, poly, n, u, v
 
-    @staticmethod
-    def _soup_normals(soup):
-        """(Ts, 3) float32 unit world normals of a soup's triangles (as ``triangle_normals``)."""
-        if getattr(soup, "_normals", None) is None:
-            tv = soup.mesh.tri_vertices.astype(np.float64)
-            nn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-            with np.errstate(invalid="ignore", divide="ignore"):
-                soup._normals = (nn / np.linalg.norm(nn, axis=1, keepdims=True)).astype(np.float32)
-        return soup._normals
-
     def decode_materials(self, h) -> np.ndarray:
         """(M,) int32 material index (into ``material_tables()[0]``) of two-level hits."""
-        mats, pool, base = self.layout.material_pool()
-        poly_pool, normal_pool, gbase, inv, mirrored = self.layout.pools()
+        _, pool, base = self.layout.material_pool()
         got = h.instance >= 0
         i = np.where(got, h.instance, 0)
         if not len(pool) or not len(base):
@@ -451,11 +440,7 @@ class Session:
         """(T, 3) float32 unit normals, cross(v1 - v0, v2 - v0) / |...| in float64 (the
         orientation Blender's ``ray_cast`` reports: extraction keeps each polygon's winding)."""
         if self._normals is None:
-            tv = self.mesh.tri_vertices.astype(np.float64)
-            n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-            length = np.linalg.norm(n, axis=1, keepdims=True)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                self._normals = (n / length).astype(np.float32)
+            self._normals = unit_normals(self.mesh.tri_vertices)
         return self._normals
 
     def per_triangle(self):
@@ -648,7 +633,7 @@ def moved(base: Session, layout, still) -> Session:
     compares the depsgraph as usual."""
     s = Session(base.key, base.head, base.body, layout, base._summary, base.attributes, changed=True)
     s.still = np.asarray(still, bool)
-    s.plan, s.chosen, s.calibration, s.kinds = base.plan, base.chosen, base.calibration, base.kinds
+    s.inherit(base)
     return s
 
 
