@@ -11,7 +11,7 @@ from .embree import embree_available
 from .hits import Hits
 from .intersect import prepare_rays
 from .mesh import TriangleMesh
-from .twolevel import InstanceHits, Split, TwoLevel
+from .twolevel import InstanceHits, Split, Swept, TwoLevel
 from .objio import load_obj
 from .meshio import InstancedScene, SceneFile, SceneFileError, load_mesh, read_scene, save_mesh, save_scene
 from .rays import camera_rays, hemisphere_rays, quasi_uniform_rays, uniform_rays
@@ -29,6 +29,7 @@ __all__ = [
     "TriangleMesh",
     "TwoLevel",
     "Split",
+    "Swept",
     "InstanceHits",
     "all_hits",
     "build",

@@ -571,6 +571,144 @@ class _TopTree:
         return ray, self.order[node], near
 
 
+class Swept:
+    """A ``TwoLevel``'s instances at K instants, each ray seeing them at its own: the
+    instants of a sensor's sweep, whose firings each happen at their own time while objects
+    move rigidly.
+
+    ``matrices`` (K, I, 4, 4): instance i's object-to-world matrix at instant k (each
+    instant validated as ``TwoLevel`` does).  ``trace(..., slot=)`` takes per ray its
+    instant (M,) int in 0..K-1 and gives per ray exactly what
+    ``two.with_matrices(matrices[slot]).trace`` gives it (the same float64 object-space
+    rays, the same nearest hit and tie-break), with one bottom call per instance for all
+    rays whatever K.  Each instance is visited for every ray of the chunk (the loop path of
+    ``TwoLevel``), so this is for a few instances (fewer than ``PAIRS_FROM``)."""
+
+    kind = "twolevel"
+
+    def __init__(self, two: TwoLevel, matrices):
+        m = np.asarray(matrices, np.float64)
+        if m.ndim != 4 or m.shape[1:] != (two.instance_count, 4, 4) or len(m) == 0:
+            raise ValueError(f"matrices must have shape (K, {two.instance_count}, 4, 4) with K >= 1, got {m.shape}")
+        k, n = m.shape[:2]
+        try:  # every instant's placements validated, inverted and boxed in one pass
+            every = TwoLevel(two.bottoms, np.tile(two.instance_bottom, k), m.reshape(-1, 4, 4), np.tile(two.tri_base, k),
+                             pairs_from=np.iinfo(np.int64).max)
+        except ValueError:
+            for mk in m:  # the message names the instance within its instant
+                two.with_matrices(mk)
+            raise
+        self.two = two
+        self.matrices = m
+        self._inverse = every._inverse.reshape(k, n, 3, 3)
+        self._translation = every._translation.reshape(k, n, 3)
+        lo, hi = every._lo.reshape(k, n, 3), every._hi.reshape(k, n, 3)
+        # per instance, (3, K) box corners: a chunk gathers its rays' instants as whole rows
+        self._lo = np.ascontiguousarray(lo.transpose(1, 2, 0))
+        self._hi = np.ascontiguousarray(hi.transpose(1, 2, 0))
+        self._live = np.ascontiguousarray(np.isfinite(lo[:, :, 0]).T)  # (I, K): can be hit at that instant
+        self._active = np.flatnonzero(self._live.any(axis=1)).astype(np.int32)
+        with np.errstate(invalid="ignore"):  # (I, 3) each instance's box over every instant (inf where never)
+            self._sweep_lo, self._sweep_hi = lo.min(axis=0), hi.max(axis=0)
+        self.triangle_count = two.triangle_count
+        self.triangle_dtype = two.triangle_dtype
+        self.ray_chunk = max(1, min(two.ray_chunk, two.pair_limit // max(1, self._active.size)))
+
+    @property
+    def instance_count(self) -> int:
+        return self.two.instance_count
+
+    def _slots(self, slot, m):
+        s = np.asarray(slot)
+        if s.shape != (m,) or (m and not np.issubdtype(s.dtype, np.integer)):
+            raise ValueError(f"slot must be a ({m},) integer array, got shape {s.shape} dtype {s.dtype}")
+        if m and (s.min() < 0 or s.max() >= len(self.matrices)):
+            raise ValueError(f"slot must lie in 0..{len(self.matrices) - 1}")
+        return s.astype(np.intp)
+
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> InstanceHits:
+        """Nearest hit per ray over all instances placed at the ray's instant ``slot``."""
+        rays = TwoLevel._prepare(origins, directions, tmin, tmax)
+        m = len(rays)
+        slot = self._slots(slot, m)
+        out = InstanceHits.empty(m, self.triangle_dtype)
+        if m == 0 or self._active.size == 0:
+            return out
+        best = _Best(m)
+        self._run(rays, slot, best, None)
+        hit = best.inst >= 0
+        out.t[:] = best.t
+        out.triangle[hit] = best.g[hit]
+        out.u[:], out.v[:] = best.u, best.v
+        out.instance[:], out.local_triangle[:] = best.inst, best.local
+        return out
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> np.ndarray:
+        """(M,) bool: some instance, placed at the ray's instant, hit with tmin < t <= tmax."""
+        rays = TwoLevel._prepare(origins, directions, tmin, tmax)
+        m = len(rays)
+        slot = self._slots(slot, m)
+        hit = np.zeros(m, bool)
+        if m and self._active.size:
+            self._run(rays, slot, None, hit)
+        return hit
+
+    def _run(self, rays, slot, best, occluded):
+        two = self.two
+        o64 = rays.origins.astype(np.float64)
+        d64 = rays.directions.astype(np.float64)
+        seg = _Segments(o64, d64, rays.tmin, rays.tmax)
+        act = self._active
+        for sl in two._chunks(len(rays), self.ray_chunk):
+            rid = np.arange(sl.start, sl.stop)
+            s = slot[rid]
+            o, inv = [x[rid] for x in seg.o], [x[rid] for x in seg.inv]
+            tmin, tmax = seg.tmin[rid], seg.tmax[rid]
+            near, touch = np.full((act.size, rid.size), np.inf), np.zeros((act.size, rid.size), bool)
+            for j, i in enumerate(act.tolist()):
+                # the rays that meet the instance's box over the whole sweep, then each of them
+                # against the box at its own instant
+                _, meets = seg.enter(o, inv, self._sweep_lo[i], self._sweep_hi[i], tmin, tmax)
+                c = np.flatnonzero(meets)
+                if not c.size:
+                    continue
+                sc = s[c]
+                near[j, c], touch[j, c] = seg.enter([x[c] for x in o], [x[c] for x in inv], self._lo[i][:, sc],
+                                                    self._hi[i][:, sc], tmin[c], tmax[c])
+                touch[j, c] &= self._live[i][sc]
+            count = touch.sum(axis=1)
+            mean_entry = np.where(touch, near, 0.0).sum(axis=1) / np.maximum(count, 1)
+            for j in np.lexsort((mean_entry, count == 0)):  # nearest mean entry first
+                if count[j] == 0:
+                    break
+                i = act[j]
+                if occluded is not None:
+                    sel = np.flatnonzero(touch[j] & ~occluded[rid])
+                else:
+                    sel = np.flatnonzero(touch[j] & (near[j] <= best.t[rid]))
+                if sel.size == 0:
+                    continue
+                ray, ks = rid[sel], s[sel]
+                ai = self._inverse[ks, i]
+                oo = _mul(ai, o64[ray] - self._translation[ks, i])
+                dd = _mul(ai, d64[ray])
+                with np.errstate(over="ignore", invalid="ignore"):
+                    o32, d32 = oo.astype(F32), dd.astype(F32)
+                    good = np.isfinite(o32).all(axis=1) & np.isfinite(d32).all(axis=1) & (d32 != 0).any(axis=1)
+                if not good.all():
+                    ray, o32, d32 = ray[good], o32[good], d32[good]
+                bottom = two.bottoms[two.instance_bottom[i]]
+                if occluded is not None:
+                    occluded[ray] |= TwoLevel._call_bottom_ok(bottom, o32, d32, rays.tmin[ray], rays.tmax[ray], True)
+                else:
+                    tmax_pair = np.minimum(rays.tmax[ray], best.t[ray])
+                    h = TwoLevel._call_bottom_ok(bottom, o32, d32, rays.tmin[ray], tmax_pair, False)
+                    best.fold(ray, np.full(len(ray), i, np.int32), h, two.tri_base)
+
+    def __repr__(self):
+        return f"<Swept {self.instance_count} instances at {len(self.matrices)} instants, {self.triangle_count} triangles>"
+
+
 class Split:
     """A scene cut in parts: flat structures over the world-space triangles of some
     instances (``soups``: the instances that stay put, built once while they do; a few
@@ -602,7 +740,8 @@ class Split:
         self.triangle_count = sum(len(g) for _, g, _, _ in self.soups) + (
             moving.triangle_count if moving is not None else 0)
 
-    def trace(self, origins, directions, tmin=0.0, tmax=np.inf) -> InstanceHits:
+    def trace(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot=None) -> InstanceHits:
+        """``slot``: per ray its instant, when ``moving`` is a ``Swept``."""
         o32 = np.asarray(origins, np.float32)
         d32 = np.asarray(directions, np.float32)
         m = max(len(o32) if o32.ndim == 2 else 1, len(d32) if d32.ndim == 2 else 1)
@@ -633,7 +772,7 @@ class Split:
             return out
         o64 = np.broadcast_to(o32.astype(np.float64), (m, 3))
         d64 = np.broadcast_to(d32.astype(np.float64), (m, 3))
-        hm = self.moving.trace(o64, d64, lo, np.maximum(hi, lo))
+        hm = self.moving.trace(o64, d64, lo, np.maximum(hi, lo), **({} if slot is None else {"slot": slot}))
         mg = hm.triangle >= 0
         take = mg & ((out.triangle < 0) | (hm.t < out.t) | ((hm.t == out.t) & (hm.triangle.astype(np.int64) < out.triangle)))
         out.t[take] = hm.t[take]
@@ -646,7 +785,7 @@ class Split:
         out.soup_triangle[take] = -1
         return out
 
-    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot=None) -> np.ndarray:
         o = np.asarray(origins, np.float32)
         d = np.asarray(directions, np.float32)
         m = max(len(o) if o.ndim == 2 else 1, len(d) if d.ndim == 2 else 1)
@@ -658,7 +797,9 @@ class Split:
             rest = np.flatnonzero(~hit)
             if not len(rest):
                 break
-            hit[rest] = acc.occluded(o if o.ndim == 1 else o[rest], d if d.ndim == 1 else d[rest], lo[rest], hi[rest])
+            extra = {"slot": slot[rest]} if slot is not None and acc is self.moving else {}
+            hit[rest] = acc.occluded(o if o.ndim == 1 else o[rest], d if d.ndim == 1 else d[rest], lo[rest], hi[rest],
+                                     **extra)
         return hit
 
     def __repr__(self):

@@ -446,3 +446,46 @@ def test_bounds_cover_every_instance_and_flatten_matches_the_independent_soup():
     assert np.array_equal(mine.vertices, flat.vertices) and np.array_equal(mine.triangles, flat.triangles)
     assert np.array_equal(np.bincount(mine.instance_index), [object_meshes()[k].triangle_count for k in ib])
 
+
+
+# -- Swept: each ray at its own instant ---------------------------------------------------------
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_swept_gives_each_ray_what_its_instants_two_level_gives_it(kind):
+    """Per ray, exactly the hit of ``with_matrices(matrices[slot])`` (bit for bit), with a
+    singular instance at one instant and rays spread over four instants."""
+    ib, matrices, rays, *_ = random_scene(5)
+    two = TwoLevel(bottoms_of(kind), ib, matrices)
+    rng = np.random.default_rng(5)
+    instants = np.stack([matrices] + [scene_matrices(5, rng) for _ in range(3)])
+    instants[2, 1, :3, :3] = 0.0  # instance 1 collapses at instant 2: never hit then
+    slot = rng.integers(0, len(instants), len(rays[0]))
+    swept = core.Swept(two, instants)
+    got = swept.trace(*rays, slot=slot)
+    hit_any = swept.occluded(*rays, slot=slot)
+    o, d, tmin, tmax = rays
+    for k in range(len(instants)):
+        rows = np.flatnonzero(slot == k)
+        want = two.with_matrices(instants[k]).trace(o[rows], d[rows], tmin[rows], tmax[rows])
+        for field in ("t", "triangle", "instance", "local_triangle", "u", "v"):
+            assert np.array_equal(getattr(got, field)[rows], getattr(want, field)), \
+                f"{kind}: instant {k} differs in {field}"
+        assert np.array_equal(hit_any[rows], want.triangle >= 0), f"{kind}: occluded differs at instant {k}"
+    assert not (got.instance[slot == 2] == 1).any()
+    assert got.hit[slot == 0].mean() > 0.3  # aimed at the first instant (a fifth with a short tmax)
+
+
+def test_swept_rejects_bad_instants_and_slots():
+    ib, matrices, rays, *_ = random_scene(5)
+    two = TwoLevel(bottoms_of("brute"), ib, matrices)
+    with pytest.raises(ValueError, match="matrices must have shape"):
+        core.Swept(two, matrices)  # one instant without its axis
+    bad = np.stack([matrices, matrices])
+    bad[1, 3, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="instance 3"):
+        core.Swept(two, bad)
+    swept = core.Swept(two, np.stack([matrices, matrices]))
+    with pytest.raises(ValueError, match="slot must lie in 0..1"):
+        swept.trace(*rays, slot=np.full(len(rays[0]), 2))
+    with pytest.raises(ValueError, match="slot must be"):
+        swept.trace(*rays, slot=np.zeros(3, int))
