@@ -561,6 +561,7 @@ class Layout:
         self.where = np.concatenate([np.asarray(g.where, np.int64) for g in groups]) if groups \
             else np.zeros(0, np.int64)
         self.derived = False  # a copy with other matrices (``with_matrices``): it has no flat mesh
+        self.tiles = 1  # how many times over the placements are listed (``tiled``)
 
     def with_matrices(self, matrices) -> "Layout":
         """The same meshes and placements, placed by ``matrices`` (I, 4, 4) world: what a
@@ -571,6 +572,21 @@ class Layout:
         out.instances = dataclasses.replace(self.instances, matrices=out.matrices)
         out._flat = out._pools = None
         out.derived = True
+        return out
+
+    def tiled(self, matrices) -> "Layout":
+        """The placements K times over, copy k placed by ``matrices[k]`` ((K, I, 4, 4)
+        world): placement k * I + i is placement i at instant k of a sweep.  For naming and
+        decoding hits (``pools``, ``material_pool``, ``instances``); it has no flat mesh."""
+        m = np.asarray(matrices, np.float64)
+        k = len(m)
+        out = self.with_matrices(m.reshape(-1, 4, 4))
+        out.placement_group = np.tile(self.placement_group, k)
+        out.tri_base = np.tile(self.tri_base, k)
+        out.where = np.tile(self.where, k)
+        out.instances = dataclasses.replace(out.instances, instance_object=np.tile(self.instances.instance_object, k))
+        out._materials = None
+        out.tiles = self.tiles * k
         return out
 
     def read_matrices(self, depsgraph):
@@ -707,7 +723,7 @@ class Layout:
                     while len(_MATERIAL_POOLS) > 4:
                         _MATERIAL_POOLS.pop(next(iter(_MATERIAL_POOLS)))
             materials, pool, base_of = kept
-            tables = np.concatenate([np.asarray(g.slot_table_of, np.int64) for g in self.groups]) \
+            tables = np.tile(np.concatenate([np.asarray(g.slot_table_of, np.int64) for g in self.groups]), self.tiles) \
                 if self.groups else np.zeros(0, np.int64)
             base = np.array([base_of.get((int(gi), int(ti)), 0) for gi, ti in zip(self.placement_group, tables)],
                             np.int64) if len(tables) == len(self.placement_group) else np.zeros(0, np.int64)

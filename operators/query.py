@@ -241,7 +241,7 @@ class _Call:
             session.check_depsgraph(depsgraph)
             depsgraph.update()
         props = depsgraph.scene.hybrid_raycast
-        # session_: a session made elsewhere for this depsgraph's scene (session.moved: a sweep's block)
+        # session_: a session made elsewhere for this depsgraph's scene (session.swept: a rigid sweep)
         self.session = session_ if session_ is not None else session.get(
             depsgraph, props, selected_only=bool(selected_only), attributes=attributes, strict=bool(strict))
         s = self.session
@@ -284,10 +284,10 @@ class _Call:
         return (np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
                 bound(self.tmin), bound(self.tmax))
 
-    def query(self, rays, any_hit=False, flat=True):
+    def query(self, rays, any_hit=False, flat=True, slot=None):
         return self.session.query(*rays, any_hit=any_hit, structure=self.structure, budget=self.budget,
                                   kinds=self.kinds, calibration=self.calibration, samples=self.samples,
-                                  grid_config=self.grid_config, flat=flat)
+                                  grid_config=self.grid_config, flat=flat, slot=slot)
 
 
 def _interpolate(corners, tri, u, v):
@@ -319,7 +319,7 @@ def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
          selected_only: bool = False, samples: int | None = None, structure: str = "auto",
          smooth: bool = False, uv: bool = False, materials: bool = False, progress=None,
-         strict: bool = False, session_=None) -> CastResult:
+         strict: bool = False, session_=None, slot_=None) -> CastResult:
     """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
 
     origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
@@ -335,7 +335,7 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
         ``material_names``); the first such cast of a session reads the meshes' slots once.
     progress: called as progress(rays_done, rays_total) after each chunk.
     session_: internal (the sensor sweep): trace with this ``session.Session`` instead of the
-        depsgraph's.
+        depsgraph's; slot_: (M,) each ray's instant for a sweep's session (``session.swept``).
     strict: raise InvalidGeometry when an object has NaN or infinite vertex coordinates;
         by default its bad triangles are left out with one ``RuntimeWarning`` naming the
         object and the count, and the rest is traced (as ``scene.ray_cast`` does).
@@ -376,7 +376,7 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     tables = None
     for a, b in call.chunks(progress):
         rays = call.rays(a, b)
-        h, kind = call.query(rays, flat=not two_level)
+        h, kind = call.query(rays, flat=not two_level, slot=None if slot_ is None else slot_[a:b])
         k = h.triangle  # -1 on a miss picks the tables' miss row
         t[a:b], tri[a:b] = h.t, k
         if isinstance(h, core.InstanceHits):

@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from ..core import motion, pointcloud, returns, sensors
+from ..core import motion, pointcloud, returns, sensors, twolevel
 from . import query, session
 from .jobs import BadInput, Job, JobOperator, Unwritable, writable_dir
 
@@ -285,8 +285,9 @@ class ScanResult:
     sensor_matrix: (4, 4) the sensor's world pose at the start of the sweep (rotation and
     translation, no scale); rays: rays cast (sub-rays of every beam, and the rays that
     went on through glass or off mirrors); frame; space; blocks: the sweep's blocks (1 for FRAME);
-    extra['rigid_blocks']: blocks traced by moving the first block's placements (a sweep in
-    which only placements move reads their matrices at each block's time and extracts nothing).
+    extra['rigid_blocks']: blocks whose instant was read as the placements' matrices only (a
+    sweep in which a few placements only move reads their matrices at each block's instant,
+    extracts nothing more, and traces every ray at once); 0 when each block was traced anew.
     """
 
     points: np.ndarray
@@ -402,12 +403,14 @@ class _Echoes:
     structure: str
 
 
-def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure, budget, session_=None):
+def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure, budget, session_=None,
+                 slot=None):
     """Trace sub-rays ``dirs`` (unit) from ``origins`` in ``dg``: the first surface of each,
     then on through transmissive surfaces (up to ``MAX_PASSES``) and off mirror-like ones
     (up to ``returns.max_bounces``), all rays of one generation in one cast.  ``budget``:
     the rays the structures serve (a frame's, over every block of a sweep); ``session_``: the
-    session to trace with instead of the depsgraph's (``session.moved``: a rigid sweep's block)."""
+    session to trace with instead of the depsgraph's (``session.swept``, with ``slot`` each
+    ray's instant: a rigid sweep)."""
     model, phys = settings.model, settings.returns
     cols = {k: [] for k in ("ray", "range", "cos", "reflectivity", "factor", "normals", "object_index",
                             "instance_index", "material_index")}
@@ -421,7 +424,7 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
         first = offset is None
         r = query.cast(o, d, depsgraph=dg, tmin=0.0 if first else tmin,
                        tmax=model.range_max if first else model.range_max - offset,
-                       structure=used, expected_rays=max(1, budget), session_=session_,
+                       structure=used, expected_rays=max(1, budget), session_=session_, slot_=slot,
                        **({"materials": True} if settings.materials else {}))
         rays += len(idx)
         used = r.structure
@@ -468,11 +471,12 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
             ng = n[g][mg].astype(np.float64)
             rd = nd[mg] - 2.0 * np.einsum("ij,ij->i", nd[mg], ng)[:, None] * ng
             nd[mg] = rd / np.linalg.norm(rd, axis=1, keepdims=True)
-        o = o[hg] + t[g, None] * d[hg]
+        o = (o[hg] if len(o) == len(d) else o[0]) + t[g, None] * d[hg]  # one origin row: a sensor at one pose
         d = nd
         passes = (np.zeros(len(g), np.int32) if first else passes[hg]) + on[g]
         bounces = (np.zeros(len(g), np.int32) if first else bounces[hg]) + mg
         idx, offset, factor = idx[hg], dist[g], nf[g]
+        slot = None if slot is None else slot[hg]
         tmin = PASS_EPSILON + PASS_RELATIVE * offset
     cat = {k: (np.concatenate(v) if v else None) for k, v in cols.items()}
     if cat["ray"] is None:
@@ -501,12 +505,27 @@ def _pattern(model, phys):
     if hit is None:
         pat = model.pattern()
         sub, weights = returns.beam_directions(pat.directions, phys.beam_divergence, phys.beam_samples)
-        for a in (pat.directions, pat.ring, pat.azimuth, pat.time, sub, weights):
+        times, at = np.unique(pat.time, return_inverse=True)  # the channels of a step fire together
+        for a in (pat.directions, pat.ring, pat.azimuth, pat.time, sub, weights, times, at):
             a.flags.writeable = False
         if len(_PATTERNS) >= 4:
             _PATTERNS.pop(next(iter(_PATTERNS)))
-        hit = _PATTERNS[key] = (pat, sub, weights)
+        hit = _PATTERNS[key] = (pat, sub, weights, (times, at))
     return hit
+
+
+def _beam_poses(pose_times, poses, firing, members=None):
+    """(rotations (B, 3, 3), origins (B, 3)): the sensor's pose at each beam's firing time
+    (``motion.interpolate_poses``), interpolated once per distinct time: ``firing`` =
+    (distinct times, each beam's one); ``members``: only these beams."""
+    times, at = firing
+    if members is not None:
+        used, at = np.unique(at[members], return_inverse=True)
+        times = times[used]
+    p = motion.interpolate_poses(pose_times, np.stack(poses), times)
+    # np.take of contiguous rows: a fancy index of the strided views gathers several times slower
+    return (np.take(np.ascontiguousarray(p[:, :3, :3]), at, axis=0),
+            np.take(np.ascontiguousarray(p[:, :3, 3]), at, axis=0))
 
 
 def _merge(blocks: list[_Echoes]):
@@ -559,12 +578,39 @@ def _evaluate_at(scene, view_layer, frame: int, seconds: float):
     return session.evaluated(scene, view_layer)
 
 
-def _layout(dg):
-    """The session's layout of the scene as evaluated now (meshes kept across calls), or None."""
+def _session(dg, settings: SensorSettings):
+    """The session of the scene as evaluated now (meshes kept across calls), with what the
+    scan reads of it, or None."""
     try:
-        return session.get(dg, strict=False).layout
+        return session.get(dg, strict=False, attributes=("material",) if settings.materials else ())
     except (session.NoGeometry, session.InvalidGeometry):
         return None
+
+
+def _sub_rays(rot, origin, rows, samples):
+    """(origins, directions) world of beams fired from poses (``rot`` (B, 3, 3), ``origin``
+    (B, 3)): each beam's ``samples`` consecutive sensor-frame sub-ray directions of ``rows``
+    (B * samples, 3)."""
+    d = np.einsum("bij,bsj->bsi", rot, rows.reshape(len(rot), samples, 3)).reshape(-1, 3)
+    return (origin if samples == 1 else np.repeat(origin, samples, axis=0)), d
+
+
+def _instants(scene, vl, frame, plan, start, ob, pose_times, poses):
+    """Evaluate each block's instant once, reading the sensor's pose (into ``pose_times``,
+    ``poses``) and the placements' matrices of the layout ``start``: (K, I, 4, 4), or None
+    when some instant's instance walk differs from the start's (extract block by block)."""
+    mats = []
+    for _members, at in plan:
+        dgb = _evaluate_at(scene, vl, frame, at)
+        m = start.read_matrices(dgb)
+        if m is None:
+            return None
+        mats.append(m)
+        if at not in pose_times:
+            i = int(np.searchsorted(pose_times, at))
+            pose_times.insert(i, at)
+            poses.insert(i, sensor_pose(ob.evaluated_get(dgb)))
+    return np.stack(mats)
 
 
 def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", settings=None,
@@ -572,11 +618,13 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     """One frame's scan from ``ob`` of the scene as evaluated now (its current frame).
 
     FRAME motion: every ray against the scene and the sensor pose of the frame.  SWEEP: the
-    rays are cut into blocks of consecutive firing times (``core.motion``); each block is
-    traced against the scene evaluated at its middle time (where only placements move over
-    the sweep, the first block's meshes moved to the placements' matrices at that time:
-    ``session.moved``), every ray from the sensor pose at its own firing time (interpolated
-    between evaluated poses).  The scene is left at a
+    rays are cut into blocks of consecutive firing times (``core.motion``); each block sees
+    the scene evaluated at its middle time, every ray from the sensor pose at its own firing
+    time (interpolated between evaluated poses).  Where the same meshes only move over the
+    sweep (fewer than ``twolevel.PAIRS_FROM`` placements of them), each block's instant is
+    read as the placements' matrices and every ray is traced at once, the movers placed at
+    its block's instant (``session.swept``, ``core.Swept``); otherwise each block is
+    extracted and traced in turn.  The scene is left at a
     time within the sweep: callers restore the frame.  ``structure`` as ``api.cast``; the
     first block's choice serves the later ones.
     """
@@ -586,14 +634,14 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     model, phys, sweep = settings.model, settings.returns, settings.sweep
     vl = view_layer if view_layer is not None else (depsgraph.view_layer if depsgraph is not None else None)
     frame = scene.frame_current
-    pat, sub, weights = _pattern(model, phys)
+    pat, sub, weights, firing = _pattern(model, phys)
     n_beams = len(pat)
     samples = len(weights)
     duration = sweep_duration(model)
     dg = depsgraph if depsgraph is not None else session.evaluated(scene, vl)
     pose0 = sensor_pose(ob.evaluated_get(dg))
     pose_times, poses = [0.0], [pose0]
-    rigid = None  # (the sweep start's layout, (I,) placements that stay put) when only placements move
+    rigid = None  # (the sweep start's session, (I,) placements that stay put) when only placements move
     if sweep.motion == "FRAME" or duration <= 0:
         plan = [(np.arange(n_beams), None)]  # None: the depsgraph as it is
     else:
@@ -601,18 +649,22 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         dg_end = _evaluate_at(scene, vl, frame, duration)
         pose_times.append(duration)
         poses.append(sensor_pose(ob.evaluated_get(dg_end)))
-        cap = min(sweep.max_blocks, len(np.unique(pat.time)))
+        cap = min(sweep.max_blocks, len(firing[0]))
         if session.fingerprint(dg_end)[1] == body0:
             # nothing with triangles changed (a sensor that brings none is not in the body):
             # one block, every ray from its own pose
             n_blocks = 1
         else:
-            end = _layout(dg_end)
-            start = _layout(_evaluate_at(scene, vl, frame, 0.0))
-            if start is not None and end is not None and start.rigid_to(end):
-                # the same meshes throughout, only moved: later blocks read the placements'
-                # matrices at their time and trace the first block's meshes placed so
-                rigid = (start, (start.matrices == end.matrices).all(axis=(1, 2)))
+            end = _session(dg_end, settings)
+            end = end.layout if end is not None else None
+            start_s = _session(_evaluate_at(scene, vl, frame, 0.0), settings)
+            start = start_s.layout if start_s is not None else None
+            if start is not None and end is not None and start.rigid_to(end) \
+                    and (start.matrices != end.matrices).any(axis=(1, 2)).sum() < twolevel.PAIRS_FROM:
+                # the same meshes throughout, a few of them only moved: every block reads the
+                # placements' matrices at its instant, and one trace places the movers at each
+                # ray's instant (core.Swept)
+                rigid = (start_s, (start.matrices == end.matrices).all(axis=(1, 2)))
             if sweep.blocks:
                 n_blocks = min(sweep.blocks, cap)
             else:
@@ -626,21 +678,37 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
             plan = [(np.flatnonzero(block_of == b), float(mids[b])) for b in range(n_blocks)]
             plan = [(m, at) for m, at in plan if len(m)]
     echoes = []
-    one_pose = len(pose_times) == 1  # FRAME: one pose for every beam
-    beam_poses = None if one_pose else np.empty((n_beams, 4, 4))
     used = structure
-    base = None  # the first block's session, when the sweep is rigid
-    rigid_blocks = 0
-    for members, at in plan:
+    instants = None
+    if rigid is not None and len(plan) > 1:
+        instants = _instants(scene, vl, frame, plan, rigid[0].layout, ob, pose_times, poses)
+    # one pose for every beam: FRAME, or a sensor that stands still at every instant evaluated
+    # (a block by block sweep evaluates its blocks' instants as it goes: it interpolates)
+    one_pose = all(np.array_equal(p, pose0) for p in poses) and \
+        (instants is not None or all(at is None or at in pose_times for _, at in plan))
+    # each beam's sensor rotation, where a sensor-frame result needs it
+    beam_rot = np.empty((n_beams, 3, 3)) if space == "SENSOR" and not one_pose else None
+    # every sub-ray's world origin (one row for one pose) and direction, as traced
+    world_o = pose0[None, :3, 3] if one_pose else np.empty((n_beams * samples, 3))
+    world_d = sub @ pose0[:3, :3].T if one_pose else np.empty((n_beams * samples, 3))
+    if instants is not None:
+        # a rigid sweep: every ray in one trace, the movers placed at the ray's block's instant
+        slot = np.empty(n_beams, np.int32)
+        for k, (members, _at) in enumerate(plan):
+            slot[members] = k
+        if not one_pose:
+            rot, org = _beam_poses(pose_times, poses, firing)
+            world_o, world_d = _sub_rays(rot, org, sub, samples)
+            if beam_rot is not None:
+                beam_rot = rot
+        swept = session.swept(rigid[0], rigid[0].layout, instants, rigid[1])
+        echoes.append(_cast_echoes(dg, np.arange(n_beams * samples), world_o, world_d, settings, used,
+                                   n_beams * samples, swept, slot=np.repeat(slot, samples)))
+        used = echoes[-1].structure
+    for members, at in plan if instants is None else ():
         dgb = dg
-        moved = None
         if at is not None:
             dgb = _evaluate_at(scene, vl, frame, at)
-            if rigid is not None and base is not None:
-                m = rigid[0].read_matrices(dgb)
-                if m is not None:
-                    moved = session.moved(base, rigid[0].with_matrices(m), rigid[1])
-                    rigid_blocks += 1
             if at not in pose_times:
                 i = int(np.searchsorted(pose_times, at))
                 pose_times.insert(i, at)
@@ -649,19 +717,20 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         ids = np.arange(n_beams * samples) if whole else \
             (members[:, None] * samples + np.arange(samples)[None, :]).reshape(-1)
         if one_pose:
-            o = pose0[None, :3, 3]
-            d = (sub if whole else sub[ids]) @ pose0[:3, :3].T
+            o, d = world_o, (world_d if whole else world_d[ids])
         else:
             # every beam from the sensor's pose at its own firing time (motion.interpolate_poses)
-            bp = motion.interpolate_poses(pose_times, np.stack(poses), pat.time[members])
-            beam_poses[members] = bp
-            o = np.repeat(bp[:, :3, 3], samples, axis=0)
-            d = np.einsum("mij,mj->mi", np.repeat(bp[:, :3, :3], samples, axis=0), sub[ids])
-        e = _cast_echoes(dgb, ids, o, d, settings, used, n_beams * samples, moved)
+            rot, org = _beam_poses(pose_times, poses, firing, None if whole else members)
+            o, d = _sub_rays(rot, org, sub if whole else sub[ids], samples)
+            if whole:
+                world_o, world_d = o, d
+            else:
+                world_o[ids], world_d[ids] = o, d
+            if beam_rot is not None:
+                beam_rot[members] = rot
+        e = _cast_echoes(dgb, ids, o, d, settings, used, n_beams * samples)
         used = e.structure
         echoes.append(e)
-        if rigid is not None and base is None:
-            base = session.get(dgb, strict=False)
     merged, objects, names, inst_m, mats = _merge(echoes)
     meas = returns.measure_returns(merged.ray, merged.range, merged.cos, merged.reflectivity, merged.factor,
                                    beams=n_beams, samples=samples, weights=weights, sensor=model, returns=phys,
@@ -674,14 +743,8 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         sub_of = merged.ray[er]
     else:
         sub_of = np.where(real, merged.ray[er] if len(merged.ray) else 0, beam * samples)
-    if one_pose:
-        origin, rot = pose0[:3, 3], np.broadcast_to(pose0[:3, :3], (len(beam), 3, 3))
-        dirs = sub[sub_of] @ pose0[:3, :3].T
-    else:
-        bp = beam_poses[beam]
-        origin, rot = bp[:, :3, 3], bp[:, :3, :3]
-        dirs = np.einsum("mij,mj->mi", rot, sub[sub_of])
-    points = origin + meas.range[:, None] * dirs
+    origin = world_o[0] if one_pose else world_o[sub_of]
+    points = origin + meas.range[:, None] * world_d[sub_of]
     if every:
         normals, obj, inst = merged.normals[er], merged.object_index[er], merged.instance_index[er]
         mat, cos = merged.material_index[er], merged.cos[er].astype(np.float32)
@@ -700,6 +763,7 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         points = (points - origin) @ pose0[:3, :3]
         normals = (normals.astype(np.float64) @ pose0[:3, :3]).astype(np.float32)
     elif space == "SENSOR":
+        rot = beam_rot[beam]
         points = np.einsum("mji,mj->mi", rot, points - origin)
         normals = np.einsum("mji,mj->mi", rot, normals.astype(np.float64)).astype(np.float32)
     obj_arr, name_arr = np.empty(len(objects), object), np.empty(len(names), object)
@@ -714,7 +778,7 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
                       rays=merged.rays, frame=frame, space=space, structure=used, cos_incidence=cos,
                       return_index=meas.return_index, return_count=meas.return_count, material_index=mat,
                       materials=mat_arr, material_names=mat_names, classification=cls, blocks=len(plan),
-                      extra={"rigid_blocks": rigid_blocks})
+                      extra={"rigid_blocks": len(plan) if instants is not None else 0})
 
 
 def scan_depsgraph(ob, depsgraph, space="WORLD", model=None, structure="auto") -> ScanResult:

@@ -217,6 +217,8 @@ class Session:
     changed: bool = False
     #: (I,) bool: placements the previous session had too, with the same mesh and matrix
     still: object = None
+    #: a rigid sweep (``swept``): (the layout traced, its (K, I, 4, 4) matrices at K instants)
+    sweep: object = None
     #: seconds the last call paid: extraction, bottom builds, top level, trace (``TIMING_KEYS``)
     timings: dict = field(default_factory=lambda: dict.fromkeys(TIMING_KEYS, 0.0))
     #: per triangle, the world-space unit geometric normal (float32), made on first use
@@ -271,14 +273,14 @@ class Session:
         k = ("twolevel", kind, cfg)
         acc = self.structures.get(k)
         if acc is None:
-            lay = self.layout
+            lay = self.traced_layout
             still = self.still if self.still is not None else np.zeros(len(lay.placement_group), bool)
             moving = np.flatnonzero(~still)
             t0 = time.perf_counter()
             soups = [self._soup(kind, config, np.flatnonzero(still))] if still.any() else []
             moved_tris = int(sum(len(lay.groups[g].tris) for g in lay.placement_group[moving].tolist()))
             two = None
-            if len(moving) and rays is not None and moved_tris <= rays:
+            if len(moving) and rays is not None and moved_tris <= rays and self.sweep is None:
                 mesh, glob, inst, local = lay.soup(moving)
                 soups.append((core.build(mesh.prepare(), kind, **config), glob, inst, local))
                 moving = moving[:0]
@@ -291,16 +293,23 @@ class Session:
                 two = core.TwoLevel([bottoms[gi] for gi in order],
                                     np.array([order[int(g)] for g in lay.placement_group[moving]], np.int32),
                                     lay.matrices[moving], lay.tri_base[moving])
+                if self.sweep is not None:  # each ray meets the movers at its own instant
+                    two = core.Swept(two, self.sweep[1][:, moving])
             acc = self.structures[k] = core.Split([s for s in soups if s is not None], moving=two,
                                                   moving_instances=moving if two is not None else None)
             self.timings["bottom_builds"] += t1 - t0
             self.timings["top_level"] += time.perf_counter() - t1
         return acc
 
+    @property
+    def traced_layout(self):
+        """The layout the structures are built over: ``layout``, or a sweep's first instant."""
+        return self.layout if self.sweep is None else self.sweep[0]
+
     def _soup(self, kind, config, placements):
         """The flat structure over the still placements' world triangles, shared by the
         sessions of a scene while the same placements stay put."""
-        lay = self.layout
+        lay = self.traced_layout
         ident = tuple((lay.groups[lay.placement_group[i]].key, lay.matrices[i].tobytes(), int(lay.tri_base[i]))
                       for i in placements.tolist())
         key = (kind, tuple(sorted(config.items())), ident)
@@ -349,7 +358,9 @@ class Session:
                 out["parts"].append({
                     "kind": kind, "form": "two levels", "placements": int(acc.moving.instance_count),
                     "triangles": int(acc.moving.triangle_count),
-                    "why": "moved, with more triangles than the call's rays: one structure per mesh, built once, "
+                    "why": (f"moved within the sweep: one structure per mesh, built once, each ray meeting it "
+                            f"placed at the ray's own instant (of {len(self.sweep[1])})") if self.sweep is not None else
+                           "moved, with more triangles than the call's rays: one structure per mesh, built once, "
                            "placed under a top level"})
         if self.instanced:
             out["instanced"] = (f"instancing multiplies {unique:,} unique triangles {lay.triangle_count / max(unique, 1):.0f}"
@@ -493,7 +504,7 @@ class Session:
         return acc
 
     def query(self, o, d, tmin, tmax, *, any_hit=False, structure="auto", budget, kinds, calibration,
-              samples, grid_config, flat=True):
+              samples, grid_config, flat=True, slot=None):
         """Nearest hits (``core.Hits``) or any-hit booleans of one batch, and the structure used.
 
         'grid', 'bvh', 'embree' use that structure.  'auto': the session's first query
@@ -505,17 +516,32 @@ class Session:
         reaches the estimated build time of the candidate estimated fastest per ray.
         ``flat=False``: trace with the two-level scene (``tracer``; its hits are
         ``core.InstanceHits``, decoded by ``decode``) wherever the flat mesh is not needed
-        (the first plan of a scene traces flat).
+        (the first plan of a scene traces flat).  ``slot``: a sweep's session (``swept``)
+        takes per ray its instant, and its hits name placement ``slot * I + i``.
         """
+        if self.sweep is not None:
+            if flat or slot is None:
+                raise ValueError("a sweep's session traces on two levels, each ray with its instant (slot)")
+            out, kind = self._query(o, d, tmin, tmax, any_hit, structure, budget, kinds, calibration, samples,
+                                    grid_config, False, {"slot": slot})
+            if not any_hit:
+                got = out.instance >= 0
+                out.instance[got] += (np.asarray(slot)[got] * len(self.sweep[0].placement_group)).astype(np.int32)
+            return out, kind
+        return self._query(o, d, tmin, tmax, any_hit, structure, budget, kinds, calibration, samples, grid_config,
+                           flat, {})
+
+    def _query(self, o, d, tmin, tmax, any_hit, structure, budget, kinds, calibration, samples, grid_config, flat,
+               extra):
         # the structures of a changed scene serve this session's rays: this batch's, until the next change
         pick = self.structure if flat else (lambda kind, **c: self.tracer(kind, rays=len(o), **c))
         if structure != "auto":
             acc = pick("grid", **grid_config) if structure == "grid" else pick(structure)
             t0 = time.perf_counter()
-            out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax)
+            out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax, **extra)
             self.timings["trace"] += time.perf_counter() - t0
             return out, structure
-        if self.chosen is None and not flat and self.instanced:
+        if self.chosen is None and not flat and (self.instanced or self.sweep is not None):
             self.calibration, self.kinds = calibration, tuple(k for k in kinds if k != "grid")
             fast = [k for k in ("embree", "bvh") if k in kinds]
             self.chosen = fast[0] if fast else "grid"
@@ -541,7 +567,7 @@ class Session:
             self._maybe_switch(len(o))
         acc = pick(self.chosen, **(grid_config if self.chosen == "grid" else {}))
         t0 = time.perf_counter()
-        out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax)
+        out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax, **extra)
         dt = time.perf_counter() - t0
         self.timings["trace"] += dt
         if self.chosen == "grid":
@@ -625,13 +651,16 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     return s
 
 
-def moved(base: Session, layout, still) -> Session:
-    """A session for ``layout``, the base session's scene with its placements moved
-    (``extract.Layout.with_matrices``), e.g. a sweep's later instant: it shares the base's
-    meshes, structures' bottoms and decision, and traces on two levels, the ``still``
-    placements (I,) bool in one kept flat structure.  It is not stored: the next ``get``
-    compares the depsgraph as usual."""
-    s = Session(base.key, base.head, base.body, layout, base._summary, base.attributes, changed=True)
+def swept(base: Session, layout, matrices, still) -> Session:
+    """A session for a sweep whose placements only move: ``layout`` (the base session's
+    scene at the sweep's first instant) at K instants, ``matrices`` (K, I, 4, 4) world, each
+    ray traced at its own instant (``query(..., slot=)``: ``core.Swept`` under the ``still``
+    placements' kept flat structure).  Its ``layout`` is ``layout.tiled(matrices)``, so a hit
+    names placement ``k * I + i`` (placement i at instant k) and decodes with that instant's
+    matrix.  It shares the base's meshes, bottoms and decision; it is not stored."""
+    m = np.asarray(matrices, np.float64)
+    s = Session(base.key, base.head, base.body, layout.tiled(m), base._summary, base.attributes, changed=True)
+    s.sweep = (layout, m)
     s.still = np.asarray(still, bool)
     s.inherit(base)
     return s
