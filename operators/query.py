@@ -322,7 +322,7 @@ def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
          selected_only: bool = False, samples: int | None = None, structure: str = "auto",
          smooth: bool = False, uv: bool = False, materials: bool = False, progress=None,
-         strict: bool = False, session_=None, slot_=None) -> CastResult:
+         strict: bool = False, session_=None, slot_=None, points_=True) -> CastResult:
     """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
 
     origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
@@ -338,7 +338,8 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
         ``material_names``); the first such cast of a session reads the meshes' slots once.
     progress: called as progress(rays_done, rays_total) after each chunk.
     session_: internal (the sensor sweep): trace with this ``session.Session`` instead of the
-        depsgraph's; slot_: (M,) each ray's instant for a sweep's session (``session.swept``).
+        depsgraph's; slot_: (M,) each ray's instant for a sweep's session (``session.swept``);
+        points_=False: no ``points`` (None; a scan makes its own from its ranges).
     strict: raise InvalidGeometry when an object has NaN or infinite vertex coordinates;
         by default its bad triangles are left out with one ``RuntimeWarning`` naming the
         object and the count, and the rest is traced (as ``scene.ray_cast`` does).
@@ -356,7 +357,7 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     tri = np.empty(m, np.int32)
     u = np.empty(m, np.float32)
     v = np.empty(m, np.float32)
-    points = np.empty((m, 3), np.float64)
+    points = np.empty((m, 3), np.float64) if points_ else None
     normals = np.empty((m, 3), np.float32)
     obj = np.empty(m, np.int32)
     ins = np.empty(m, np.int32)
@@ -396,9 +397,10 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
             np.take(tables[3], k, axis=0, out=normals[a:b])
             if materials:
                 np.take(tables[4], k, out=mat_index[a:b])
-        tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
-        np.multiply(tt[:, None], rays[1].astype(np.float64), out=points[a:b])  # one dtype: a mixed one loops slower
-        points[a:b] += rays[0]
+        if points_:
+            tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
+            np.multiply(tt[:, None], rays[1].astype(np.float64), out=points[a:b])  # one dtype: a mixed one loops slower
+            points[a:b] += rays[0]
         if smooth or uv:
             sn, uvk = _corner_data(inst, k, h.u, h.v, smooth, uv)
             if smooth:

@@ -424,7 +424,7 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
         first = offset is None
         r = query.cast(o, d, depsgraph=dg, tmin=0.0 if first else tmin,
                        tmax=model.range_max if first else model.range_max - offset,
-                       structure=used, expected_rays=max(1, budget), session_=session_, slot_=slot,
+                       structure=used, expected_rays=max(1, budget), session_=session_, slot_=slot, points_=False,
                        **({"materials": True} if settings.materials else {}))
         rays += len(idx)
         used = r.structure
