@@ -256,6 +256,13 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         items=(("NONE", "None", "No candidate beats the grid"), ("BVH", "BVH", ""), ("EMBREE", "Embree", "")),
         default="NONE")
     grid_build_time: _time("Grid Build", "Measured build time of the uniform grid")
+    grid_built: BoolProperty(
+        name="Grid Built", default=True,
+        description="Whether the analysis built the grid: not when the calibration alone settled the decision "
+        "(the expected rays above its ceiling on the break-even against a structure much faster per ray)")
+    break_even_ceiling: FloatProperty(
+        name="Break-even Ceiling", description="The calibration's upper bound on the break-even against the "
+        "structure it settled for (0 when the analysis measured the grid)", min=0.0, max=BREAK_EVEN_NEVER, precision=0)
     grid_per_ray: _time("Grid per Ray", "Grid time per ray on a large workload: from the sample rays' work counts "
                         "(traversal steps and candidate triangles, or cells with an older calibration) with the "
                         "calibrated count model, or else their measured time times the calibrated batch ratio")

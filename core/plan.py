@@ -118,6 +118,13 @@ class Plan:
     #: the calibration's lower bound on the break-even (0: none); a plan for fewer rays
     #: keeps the grid without sampling (``Calibration.prior``)
     break_even_floor: float = 0.0
+    #: False when the calibration alone settled the plan for a hierarchical structure
+    #: (the expected rays above ``break_even_ceiling``): no grid built, no sample traced,
+    #: and the grid's figures are the calibration's bound, not a measurement
+    grid_built: bool = True
+    #: the calibration's upper bound on the break-even against the structure it settled
+    #: for (inf: the plan measured the grid)
+    break_even_ceiling: float = math.inf
     estimate_time: float = 0.0
     plan_time: float = 0.0
     grid_reused: bool = False
@@ -159,6 +166,7 @@ class Plan:
             "decision": self.decision, "certain": self.certain, "grid_sample_per_ray": self.grid_sample_per_ray,
             "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
             "grid_terms": list(self.grid_terms), "break_even_floor": self.break_even_floor,
+            "grid_built": self.grid_built, "break_even_ceiling": _json_float(self.break_even_ceiling),
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
@@ -395,7 +403,9 @@ def plan(
     grid: an already built grid over ``mesh`` to reuse (its build time is reported).
     grid_config / configs: build options for the grid / {kind: options} for the others.
     prior: skip the sample when ``expected_rays`` is below the calibration's floor on the
-    break-even (``Calibration.prior``): the grid wins there whatever the sample says.
+    break-even (``Calibration.prior``): the grid wins there whatever the sample says; and
+    build neither the grid nor a sample when they are above its ceiling against the
+    candidate estimated cheapest (``Plan.grid_built`` False): that candidate wins there.
     """
     t0 = time.perf_counter()
     _check_expected(expected_rays)
@@ -409,19 +419,25 @@ def plan(
     kinds, skipped = available_kinds(kinds)
     notes += skipped
     k = max(1, int(samples))
+    if grid is not None and getattr(grid, "mesh", None) is not mesh:
+        raise ValueError("the grid passed to plan() was built over another mesh")
+    cands = [kk for kk in kinds if kk != "grid" and kk in calibration.fits]
+    pri = calibration.prior(mesh.triangle_count, cands) if prior and mesh.triangle_count and cands else None
+    floor = pri.floor if pri is not None else 0.0
+    if grid is None and pri is not None:
+        settled = _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, unavailable, notes)
+        if settled is not None:
+            settled.plan_time = settled.estimate_time = time.perf_counter() - t0
+            settled.mesh, settled.configs = mesh, dict(configs or {})
+            return settled
     mesh.prepare()
     if grid is None:
         grid = build(mesh, "grid", **(grid_config or {}))
         reused = False
     else:
-        if getattr(grid, "mesh", None) is not mesh:
-            raise ValueError("the grid passed to plan() was built over another mesh")
         reused = True
     t1 = time.perf_counter()
     sample, idx = None, None
-    cands = [kk for kk in kinds if kk != "grid" and kk in calibration.fits]
-    pri = calibration.prior(mesh.triangle_count, cands) if prior and mesh.triangle_count and cands else None
-    floor = pri.floor if pri is not None else 0.0
     per_ray = {}
     if floor and _check_expected(expected_rays) <= floor:
         # too few rays for any structure to pay back its build on this calibration's
@@ -483,6 +499,39 @@ def plan(
     p.plan_time = time.perf_counter() - t0
     p.grid_reused = reused
     p.grid, p.mesh, p.configs = grid, mesh, dict(configs or {})
+    return p
+
+
+def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, unavailable, notes) -> Plan | None:
+    """The plan when the calibration alone settles it for a hierarchical structure H: the
+    expected rays pass the calibration's ceiling on the break-even against the H with the
+    least estimated total (``Calibration.prior``), so H wins whatever a sample would say and
+    neither the grid nor a sample is paid for.  None otherwise.  The grid's time per ray is
+    then the least the calibration allows (t_H + the least gain), under which the one rule
+    picks H too."""
+    r = float(expected_rays)
+    n = mesh.triangle_count
+    est = {kk: calibration.estimate(kk, n) for kk in cands}
+    best = min(est, key=lambda kk: (est[kk].build_time + r * est[kk].per_ray, kk))
+    ceiling = pri.ceiling.get(best)
+    if ceiling is None or r < ceiling:
+        return None
+    g = est[best].per_ray + pri.gain_low[best]
+    p = plan_from_timings(n, r, calibration, 0.0, g, kinds=kinds, samples=0, unavailable=unavailable,
+                          notes=list(notes) + [
+                              f"{r:,.0f} expected rays are above the calibration's ceiling on the break-even against "
+                              f"{best} ({ceiling:,.0f}): {best} wins without a grid or a sample; the grid's time per "
+                              f"ray is the least the calibration allows"],
+                          floor=pri.floor)
+    if p.chosen == "grid":  # cannot happen under these figures; keep the measured path if it does
+        return None
+    p.grid_built = False
+    p.break_even_ceiling = float(ceiling)
+    # what the calibration alone says of the break-even: between its floor and its ceiling
+    # (its estimate for N, extrapolated far from the calibration's sizes, may fall outside)
+    p.break_even_low, p.break_even_high = min(pri.floor, float(ceiling)), float(ceiling)
+    p.break_even = min(max(p.break_even, p.break_even_low), p.break_even_high)
+    p.grid_sample_per_ray = 0.0
     return p
 
 

@@ -481,6 +481,53 @@ def test_the_evaluated_hybrid_pays_no_estimate_below_the_floor():
     assert list(t["choice"]) == ["grid", "grid"]
 
 
+def test_prior_ceiling_is_the_margin_times_highest_build_over_least_gain_on_exact_laws():
+    n = 30000
+    recs = _lawful_records()
+    p = cost.prior(recs, n, ("bvh",))
+    gain = 0.5e-7 * n ** 0.25
+    assert p.gain_low["bvh"] == pytest.approx(gain, rel=1e-9)
+    assert p.ceiling["bvh"] == pytest.approx(cost.CEILING_MARGIN * 5e-8 * cost.nlog2n(n) ** 1.05 / gain, rel=1e-9)
+    assert p.floor < cost.break_even(5e-8 * cost.nlog2n(n) ** 1.05, 2 * gain, gain) < p.ceiling["bvh"]
+    # one scene where the candidate is slower per ray than the grid: no ceiling against it
+    slow = recs[:-1] + [SceneRecord("slow", 256000, 1000, {"grid": Measurement(1e-3, 1e-4, 1000),
+                                                          "bvh": Measurement(1.0, 2e-4, 1000)})]
+    assert "bvh" not in cost.prior(slow, n, ("bvh",)).ceiling
+    assert cost.prior(recs[:2], n, ("bvh",)).ceiling == {}  # two scenes bound nothing
+
+
+def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():
+    from hybrid_raycast.core import plan, scenes as S
+
+    recs = _lawful_records()
+    cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
+    mesh = S.torus(3000)
+    ceiling = cal.prior(mesh.triangle_count, ("bvh",)).ceiling["bvh"]
+    above = plan(mesh, ceiling * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
+    assert (above.grid_built, above.grid, above.samples, above.decision) == (False, None, 0, "BVH")
+    assert above.break_even_ceiling == pytest.approx(ceiling) and above.break_even_high == pytest.approx(ceiling)
+    assert above.break_even_low <= above.break_even <= above.break_even_high
+    d = above.to_dict()
+    assert d["grid_built"] is False and d["break_even_ceiling"] == pytest.approx(ceiling)
+    from hybrid_raycast.core.rays import uniform_rays
+
+    hits = above.trace(*uniform_rays(mesh, 500, seed=1)[:2])  # it builds its BVH and traces
+    assert above.executed[0]["kind"] == "bvh" and hits.hit.any()
+    below = plan(mesh, ceiling * 0.9, cal, kinds=("grid", "bvh"), samples=2000)
+    assert below.grid_built and below.grid is not None and below.samples == 2000
+    assert plan(mesh, ceiling * 1.1, cal, kinds=("grid", "bvh"), samples=2000, prior=False).grid_built
+
+
+def test_the_evaluated_hybrid_builds_no_grid_above_the_ceiling():
+    s = ev.SceneResult("x", 1000, 10, cost.Cost.point("grid", 0.01, 1e-6), costs_of(bvh=(0.02, 1e-7)), costs_of(bvh=(0.02, 1e-7)),
+                       1e-6, 0.005, 100, ceiling={"bvh": 1e5}, prior_estimated=costs_of(bvh=(0.03, 2e-7)))
+    t = ev.hybrid_totals(s, [5e4, 2e5], kinds=("bvh",))
+    assert t["hybrid"].tolist() == pytest.approx([0.01 + 0.005 + 0.02 + 5e4 * 1e-7, 0.02 + 2e5 * 1e-7])
+    assert t["settled"].tolist() == [False, True] and list(t["choice"]) == ["bvh", "bvh"]
+    again = ev.SceneResult.from_dict(s.to_dict())
+    assert again.prior_estimated["bvh"].per_ray == 2e-7 and again.ceiling == {"bvh": 1e5}
+
+
 def test_nonneg_fit_drops_a_term_that_would_be_negative():
     x = np.array([[1, 1.0], [1, 2.0], [1, 3.0]])
     y = np.array([3.0, 2.0, 1.0])  # falling with x: the slope would be negative

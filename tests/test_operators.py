@@ -20,6 +20,7 @@ def analyze():
 
 def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     simple_scene()
+    props().candidates = {"BVH"}  # a candidate the calibration cannot settle alone: the grid is measured
     assert analyze() == {"FINISHED"}
     p = props()
     assert p.has_results and p.decision in {"GRID", "BVH", "EMBREE"}
@@ -62,6 +63,7 @@ def test_sidebar_quotes_only_the_counts_the_grid_model_weighed(fresh, addon):
     still counts steps and candidates, but the sidebar must not quote counts the estimate
     did not use (it falls back to the cells line)."""
     simple_scene()
+    props().candidates = {"BVH"}
     assert analyze() == {"FINISHED"}
     p = props()
     rec = json.loads(p.last_analysis_json)
@@ -72,6 +74,28 @@ def test_sidebar_quotes_only_the_counts_the_grid_model_weighed(fresh, addon):
     addon.operators.analyze.store_results(p, rec)
     assert p.grid_steps_per_ray == 0.0 and p.grid_candidates_per_ray == 0.0
     assert p.grid_cells_per_ray == pytest.approx(work["cells"], rel=1e-6) and p.grid_cells_per_ray > 0
+
+
+def test_analyze_settles_for_embree_without_a_grid_above_the_calibrations_ceiling(fresh, addon):
+    """Embree beats the grid per ray on every calibration scene: for rays above the
+    calibration's ceiling on the break-even, the analysis builds no grid and traces no sample,
+    and says so; below the ceiling it measures the grid."""
+    if not addon.core.embree_available():
+        pytest.skip("embreex is not importable here")
+    simple_scene()
+    p = props()
+    p.candidates = {"BVH", "EMBREE"}
+    assert analyze() == {"FINISHED"}
+    rec = json.loads(p.last_analysis_json)
+    ceiling = rec["plan"]["break_even_ceiling"]
+    assert not p.grid_built and rec["plan"]["grid_built"] is False and p.decision == "EMBREE"
+    assert p.samples_traced == 0 and ceiling is not None and p.analyzed_rays >= ceiling
+    assert p.break_even_ceiling == pytest.approx(ceiling, rel=1e-6)
+    assert p.break_even_low <= p.break_even_rays <= p.break_even_high == pytest.approx(ceiling, rel=1e-6)
+    assert any("ceiling" in n for n in rec["plan"]["notes"])
+    p.expected_rays = ceiling / 4  # below the ceiling: the sample decides
+    assert analyze() == {"FINISHED"}
+    assert p.grid_built and p.samples_traced > 0 and p.grid_build_time > 0
 
 
 def test_invoke_in_background_runs_synchronously(fresh):

@@ -143,18 +143,23 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
         if not props.has_results:
             return
         col = layout.column(align=True)
-        col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
-        if props.samples_traced == 0:
-            col.label(text="  (no sample: too few rays for any structure to pay back its build)")
-        elif props.grid_steps_per_ray > 0:
-            col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: {props.grid_steps_per_ray:.1f} "
-                           f"steps, {props.grid_candidates_per_ray:.1f} candidates/ray)")
-        elif props.grid_cells_per_ray > 0:
-            refs = f", {props.grid_refs_per_ray:.1f} refs" if props.grid_refs_per_ray > 0 else ""
-            col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: "
-                           f"{props.grid_cells_per_ray:.1f} cells{refs}/ray)")
+        if not props.grid_built:
+            kind = {"BVH": "the BVH", "EMBREE": "Embree"}.get(props.break_even_kind, props.break_even_kind.lower())
+            col.label(text="Grid: not built")
+            col.label(text=f"  (above {props.break_even_ceiling:,.0f} rays {kind} wins on the calibration alone)")
         else:
-            col.label(text=f"  (from {props.samples_traced:,} sample rays x {props.grid_sample_ratio:.2f} batch ratio)")
+            col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
+            if props.samples_traced == 0:
+                col.label(text="  (no sample: too few rays for any structure to pay back its build)")
+            elif props.grid_steps_per_ray > 0:
+                col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: {props.grid_steps_per_ray:.1f} "
+                               f"steps, {props.grid_candidates_per_ray:.1f} candidates/ray)")
+            elif props.grid_cells_per_ray > 0:
+                refs = f", {props.grid_refs_per_ray:.1f} refs" if props.grid_refs_per_ray > 0 else ""
+                col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: "
+                               f"{props.grid_cells_per_ray:.1f} cells{refs}/ray)")
+            else:
+                col.label(text=f"  (from {props.samples_traced:,} sample rays x {props.grid_sample_ratio:.2f} batch ratio)")
         if props.bvh_considered:
             col.label(text=f"BVH (est.): build {_secs(props.bvh_build_time)}, {_secs(props.bvh_per_ray)}/ray")
         if props.embree_considered:

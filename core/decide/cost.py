@@ -809,6 +809,8 @@ def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=No
 #: timings on a shared machine move between runs by more than those extremes allow for (and
 #: the scene is not among them)
 FLOOR_MARGIN = 0.5
+#: the ceiling's safety factor, the floor's mirror: a bound from the extremes, doubled
+CEILING_MARGIN = 2.0
 
 
 def _power_envelope(x, y, side: str) -> tuple[float, float]:
@@ -829,11 +831,16 @@ class Prior:
     floor: a lower bound on the break-even against every candidate (0: none);
     grid_per_ray: the slowest grid time per ray the calibration scenes imply;
     per_ray: {kind: grid_per_ray less the largest gain per ray any calibration scene showed},
-    figures under which each candidate's break-even is at least ``floor / FLOOR_MARGIN``."""
+    figures under which each candidate's break-even is at least ``floor / FLOOR_MARGIN``;
+    ceiling: {kind: an upper bound on the break-even against it}, for the candidates that beat
+    the grid per ray on every calibration scene (absent: none);
+    gain_low: {kind: the least gain per ray t_G - t_H}, the figure the ceiling divides by."""
 
     floor: float = 0.0
     grid_per_ray: float = 0.0
     per_ray: dict = field(default_factory=dict)
+    ceiling: dict = field(default_factory=dict)
+    gain_low: dict = field(default_factory=dict)
 
 
 def _ceiling(x, y, n: float) -> float:
@@ -845,29 +852,43 @@ def _ceiling(x, y, n: float) -> float:
 
 
 def prior(records: list[SceneRecord], n: int, kinds) -> Prior:
-    """A lower bound on R* = T_B^H / (t_G - t_H) from the calibration scenes alone.
+    """Bounds on R* = T_B^H / (t_G - t_H) from the calibration scenes alone.
 
-    R*_H >= T_B,low(N) / g_high(N): the lowest build and the largest gain per ray g = t_G - t_H
-    any calibration scene showed, as power laws (in N log2 N and N) through the extremes; g is
-    also bounded by the grid's slowest time per ray (t_H >= 0).  The floor is FLOOR_MARGIN
-    times the least of these over the candidates: below it the grid wins without a sample, so
-    a plan for so few rays need not pay for one.  No floor without 3 scenes measuring the
-    grid and each candidate."""
+    Floor: R*_H >= T_B,low(N) / g_high(N), the lowest build and the largest gain per ray g =
+    t_G - t_H any calibration scene showed, as power laws (in N log2 N and N) through the
+    extremes; g is also bounded by the grid's slowest time per ray (t_H >= 0).  The floor is
+    FLOOR_MARGIN times the least of these over the candidates: below it the grid wins
+    without a sample, so a plan for so few rays need not pay for one.  No floor without 3
+    scenes measuring the grid and each candidate.
+
+    Ceiling, the mirror: R*_H <= T_B,high(N) / g_low(N), the highest build and the least gain,
+    times CEILING_MARGIN, for a candidate that beat the grid per ray on every one of at least
+    3 calibration scenes (Embree, about ten times the grid's speed): above it H wins
+    whatever a sample would say, so a plan for so many rays need not build the grid."""
     grid = [r for r in records if "grid" in r.kinds and r.triangles > 0]
     t_g = _ceiling([r.triangles for r in grid], [r.kinds["grid"].per_ray for r in grid], n) if n > 0 else 0.0
     if not t_g > 0 or not kinds:
         return Prior(0.0, t_g)
-    bounds, per_ray = [], {}
+    bounds, per_ray, ceiling, gain_low = [], {}, {}, {}
     for k in kinds:
         have = [r for r in grid if k in r.kinds]
         if len(have) < 3:
-            return Prior(0.0, t_g)  # a candidate the calibration cannot bound: no floor
-        cb, pb = _power_envelope([nlog2n(r.triangles) for r in have], [r.kinds[k].build_time for r in have], "low")
-        gain = [(r.triangles, r.kinds["grid"].per_ray - r.kinds[k].per_ray) for r in have]
-        gain = [(x, y) for x, y in gain if y > 0]
+            bounds.append(0.0)  # a candidate the calibration cannot bound: no floor
+            continue
+        x_build = [nlog2n(r.triangles) for r in have]
+        cb, pb = _power_envelope(x_build, [r.kinds[k].build_time for r in have], "low")
+        every = [(r.triangles, r.kinds["grid"].per_ray - r.kinds[k].per_ray) for r in have]
+        gain = [(x, y) for x, y in every if y > 0]
         g = min(t_g, _ceiling([x for x, _ in gain], [y for _, y in gain], n)) if len(gain) >= 3 else t_g
         if not g > 0:
             g = t_g
         bounds.append(cb * nlog2n(n) ** pb / g)
         per_ray[k] = max(t_g - g, 0.0)
-    return Prior(FLOOR_MARGIN * min(bounds), t_g, per_ray)
+        if len(gain) == len(every):  # H faster per ray on every scene: a least gain exists
+            cg, pg = _power_envelope([x for x, _ in gain], [y for _, y in gain], "low")
+            low = cg * float(n) ** pg
+            ch, ph = _power_envelope(x_build, [r.kinds[k].build_time for r in have], "high")
+            if low > 0 and ch > 0:
+                gain_low[k] = low
+                ceiling[k] = CEILING_MARGIN * ch * nlog2n(n) ** ph / low
+    return Prior(FLOOR_MARGIN * min(bounds), t_g, per_ray, ceiling, gain_low)

@@ -99,6 +99,11 @@ class SceneResult:
     #: the calibration's floor on the break-even (``Plan.break_even_floor``): for at most
     #: this many rays the plan keeps the grid without sampling (0: no floor)
     floor: float = 0.0
+    #: {kind: the calibration's ceiling on the break-even against it} (``Calibration.prior``)
+    #: and {kind: its estimate for N alone}: above the ceiling of the kind estimated cheapest,
+    #: the plan builds no grid and takes that kind (``Plan.grid_built``)
+    ceiling: dict = field(default_factory=dict)
+    prior_estimated: dict = field(default_factory=dict)
 
     @property
     def grid_sample_ratio(self) -> float | None:
@@ -116,6 +121,7 @@ class SceneResult:
         d["grid"] = Cost.from_dict(d["grid"], "grid")
         d["measured"] = {k: Cost.from_dict(v, k) for k, v in d["measured"].items()}
         d["estimated"] = {k: Cost.from_dict(v, k) for k, v in d["estimated"].items()}
+        d["prior_estimated"] = {k: Cost.from_dict(v, k) for k, v in d.get("prior_estimated", {}).items()}
         return cls(**d)
 
 
@@ -246,6 +252,21 @@ def chosen_cost(s: SceneResult, choice, rays) -> np.ndarray:
     return out
 
 
+def settled_without_grid(s: SceneResult, rays, kinds=("bvh",)) -> tuple[np.ndarray, np.ndarray]:
+    """(settled (R,) bool, pick (R,) names): where the plan builds no grid (the rays above
+    the calibration's ceiling against the kind its estimate for N alone makes cheapest;
+    ``plan._settled_without_grid``) and the kind it takes there."""
+    r = np.atleast_1d(np.asarray(rays, np.float64))
+    est = {k: s.prior_estimated[k] for k in kinds if k in s.prior_estimated and k in s.measured}
+    if not est:
+        return np.zeros(len(r), bool), np.full(len(r), "grid", dtype=object)
+    names = sorted(est)
+    totals = np.stack([est[k].build_time + r * est[k].per_ray for k in names])
+    pick = np.asarray(names, dtype=object)[np.argmin(totals, axis=0)]
+    bound = np.array([s.ceiling.get(k, math.inf) for k in pick], np.float64)
+    return r >= bound, pick
+
+
 def hybrid_reuse_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision when its K samples are K of the workload's R rays:
     ``rule.choose`` with ``answered=K``."""
@@ -263,6 +284,8 @@ def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]
     sample's answers (grid, numpy BVH), ``T_B^G + e' + C(R)`` otherwise; when R <= K the
     grid answers all while planning, ``T_B^G + R t_G``.  C is the true cost of the choice
     (its build included, the grid's sunk) and e' the estimate's cost with workload samples.
+    Where the calibration alone settles the plan (``settled_without_grid``), both are the
+    settled kind's true total, with no grid and no estimate.
     """
     r = np.atleast_1d(np.asarray(rays, np.float64))
     kinds = [k for k in kinds if k in s.measured]
@@ -272,11 +295,16 @@ def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]
     e_reuse = s.estimate_time if s.reuse_estimate_time is None else s.reuse_estimate_time
     rest = np.where(np.isin(reuse, REUSES_SAMPLES), np.maximum(r - k, 0.0), r)
     below = r <= s.floor  # the plan keeps the grid without sampling: no estimate to pay for
+    settled, pick = settled_without_grid(s, r, kinds)
+    alone = chosen_cost(s, pick, r)  # no grid: the pick's build and rays only
+    hybrid = np.where(below, s.grid.total_time(r), s.grid.build_time + s.estimate_time + chosen_cost(s, choice, r))
+    hybrid_reuse = np.where((r <= k) | below, s.grid.total_time(r), s.grid.build_time + e_reuse + chosen_cost(s, reuse, rest))
     return {
-        "hybrid": np.where(below, s.grid.total_time(r), s.grid.build_time + s.estimate_time + chosen_cost(s, choice, r)),
-        "hybrid_reuse": np.where((r <= k) | below, s.grid.total_time(r), s.grid.build_time + e_reuse + chosen_cost(s, reuse, rest)),
-        "choice": choice,
-        "choice_reuse": reuse,
+        "hybrid": np.where(settled, alone, hybrid),
+        "hybrid_reuse": np.where(settled, alone, hybrid_reuse),
+        "choice": np.where(settled, pick, choice).astype(object),
+        "choice_reuse": np.where(settled, pick, reuse).astype(object),
+        "settled": settled,
     }
 
 
@@ -661,7 +689,9 @@ def measure_scene(name, group, mesh, cal: Calibration, kinds, be=None, *, rays: 
     measured = {k: Cost.point(k, be.measurements[k].build_time, be.measurements[k].per_ray, measured=True) for k in kinds}
     rc_halves = be.R_C_repeats
     candidates = ("grid",) + tuple(kinds)
-    p = plan(mesh, COST_AT, cal, samples=samples, kinds=candidates, seed=seed + 1)
+    # prior=False: the estimate is what is evaluated, so it is always made (the floor and the
+    # ceiling are priced apart, from the SceneResult's own)
+    p = plan(mesh, COST_AT, cal, samples=samples, kinds=candidates, seed=seed + 1, prior=False)
     pw = plan(mesh, COST_AT, cal, rays=(o, d), samples=samples, grid=p.grid, kinds=candidates, seed=seed + 2)
     est = {k: Cost.point(k, c.build_time, c.per_ray) for k, c in p.candidates.items() if k != "grid"}
     ratio, lo, hi = cal.grid_sample_ratio(p.samples)
@@ -673,6 +703,9 @@ def measure_scene(name, group, mesh, cal: Calibration, kinds, be=None, *, rays: 
         p.samples, group, grid_sample_per_ray=p.grid_sample_per_ray, reuse_estimate_time=pw.estimate_time,
         # the hybrid the evaluation runs decides between the grid and the numpy BVH: its floor
         floor=cal.break_even_floor(n, ("bvh",)),
+        ceiling=dict(cal.prior(n, kinds).ceiling),
+        prior_estimated={k: Cost.point(k, (e := cal.estimate(k, n)).build_time, e.per_ray) for k in kinds
+                         if k in cal.fits},
         extra={"plan_grid_build": p.grid_build_time, "grid_resolution": [int(x) for x in getattr(grid, "res", [])],
                "plan_break_even": {k: c.break_even for k, c in p.candidates.items() if k != "grid"},
                "break_even_low": p.candidates["bvh"].break_even_low, "break_even_high": p.candidates["bvh"].break_even_high,
