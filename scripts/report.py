@@ -61,7 +61,7 @@ core_package()
 from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
 from hybrid_raycast.core.decide import cost, evaluate  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
-    CALIBRATION_FORMAT, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, calibrate, load, warm_up,
+    CALIBRATION_FORMAT, DEFAULT_PATH, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, calibrate, load, warm_up,
 )
 from hybrid_raycast.core.decide.evaluate import GRID_ESTIMATES, fnum  # noqa: E402
 from hybrid_raycast.core.decide.measurements import CALIBRATION_REPEATS, ONE_THREAD  # noqa: E402
@@ -683,7 +683,13 @@ def get_calibration(args, beside=None):
         cal = calibrate(kinds=("bvh", "embree"), scale=args.cal_scale, rays_per_scene=args.cal_rays, progress=progress,
                         model=cost.DEFAULT_MODEL, sample_ladder=tuple(args.cal_ladder),
                         beside=beside() if beside is not None else None, **cal_options(args))
+        if path.resolve() == Path(DEFAULT_PATH).resolve():
+            # the shipped calibration is re-measured by scripts/ship_calibration.py only: a
+            # report that could not reuse it keeps its own in out/
+            path = ROOT / "out" / "report_calibration.json"
+            path.parent.mkdir(parents=True, exist_ok=True)
         cal.save(path)
+        log(f"calibration saved to {path}")
         how = f"measured for this report in {cal.duration_s:.0f} s" + (
             ", in the same passes as the evaluated scenes' truths" if beside is not None else "")
     if cal.model != cost.DEFAULT_MODEL or cal.version.get("format") != CALIBRATION_FORMAT:
