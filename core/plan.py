@@ -506,9 +506,8 @@ def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, u
     """The plan when the calibration alone settles it for a hierarchical structure H: the
     expected rays pass the calibration's ceiling on the break-even against the H with the
     least estimated total (``Calibration.prior``), so H wins whatever a sample would say and
-    neither the grid nor a sample is paid for.  None otherwise.  The grid's time per ray is
-    then the least the calibration allows (t_H + the least gain), under which the one rule
-    picks H too."""
+    neither the grid nor a sample is paid for.  None otherwise.  The grid's figures are then
+    the calibration's: its time per ray the least it allows (t_H + the least gain)."""
     r = float(expected_rays)
     n = mesh.triangle_count
     est = {kk: calibration.estimate(kk, n) for kk in cands}
@@ -519,12 +518,14 @@ def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, u
     g = est[best].per_ray + pri.gain_low[best]
     p = plan_from_timings(n, r, calibration, 0.0, g, kinds=kinds, samples=0, unavailable=unavailable,
                           notes=list(notes) + [
-                              f"{r:,.0f} expected rays are above the calibration's ceiling on the break-even against "
-                              f"{best} ({ceiling:,.0f}): {best} wins without a grid or a sample; the grid's time per "
-                              f"ray is the least the calibration allows"],
+                              (f"{r:,.0f} expected rays are above the calibration's ceiling on the rays from which "
+                               f"building {best} beats building the grid ({ceiling:,.0f})" if ceiling > 0 else
+                               f"{best} built faster and traced faster than the grid on every calibration scene")
+                              + f": {best} without a grid or a sample; the grid's figures are the calibration's"],
                           floor=pri.floor)
-    if p.chosen == "grid":  # cannot happen under these figures; keep the measured path if it does
-        return None
+    # the rule weighs the grid's build as sunk; here nothing is built yet, and the ceiling
+    # bounds the rays from which building ``best`` beats building the grid
+    p.decision, p.certain = best.upper(), True
     p.grid_built = False
     p.break_even_ceiling = float(ceiling)
     # what the calibration alone says of the break-even: between its floor and its ceiling

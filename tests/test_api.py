@@ -30,8 +30,9 @@ def test_cast_equals_brute_force_on_the_extracted_mesh(fresh, addon, expected):
     r = addon.api.cast(o, d, expected)
     ref = core.build(mesh, "brute").trace(o, d)
     assert r.structure in {"grid", "bvh", "embree"}
-    if expected == 1.0:
-        assert r.structure == "grid", "one ray never pays for a BVH build"
+    if expected == 1.0:  # one ray never pays for a numpy BVH; Embree only where it builds faster than the grid
+        assert r.structure != "bvh", "one ray never pays for a BVH build"
+        assert r.structure == "grid" or not r.plan.grid_built
     bad = np.flatnonzero(r.hit != ref.hit)
     assert bad.size == 0, f"{bad.size} rays differ in hit/miss, first {bad[:5]}"
     h = ref.hit

@@ -481,19 +481,25 @@ def test_the_evaluated_hybrid_pays_no_estimate_below_the_floor():
     assert list(t["choice"]) == ["grid", "grid"]
 
 
-def test_prior_ceiling_is_the_margin_times_highest_build_over_least_gain_on_exact_laws():
+def test_prior_ceiling_bounds_the_rays_from_which_building_the_candidate_beats_building_the_grid():
+    """R_0 = (T_B^H - T_B^G) / (t_G - t_H) per scene, over N: the largest, times N and the margin."""
     n = 30000
-    recs = _lawful_records()
+    recs = _lawful_records()  # the BVH builds dearer than the grid's 1 ms from 4,000 triangles on
     p = cost.prior(recs, n, ("bvh",))
-    gain = 0.5e-7 * n ** 0.25
-    assert p.gain_low["bvh"] == pytest.approx(gain, rel=1e-9)
-    assert p.ceiling["bvh"] == pytest.approx(cost.CEILING_MARGIN * 5e-8 * cost.nlog2n(n) ** 1.05 / gain, rel=1e-9)
-    assert p.floor < cost.break_even(5e-8 * cost.nlog2n(n) ** 1.05, 2 * gain, gain) < p.ceiling["bvh"]
+    r0 = [max(5e-8 * cost.nlog2n(m) ** 1.05 - 1e-3, 0.0) / (0.5e-7 * m ** 0.25) / m for m in (1000, 4000, 16000, 64000, 256000)]
+    assert p.ceiling["bvh"] == pytest.approx(cost.CEILING_MARGIN * max(r0) * n, rel=1e-9)
+    assert p.gain_low["bvh"] == pytest.approx(0.5e-7 * n ** 0.25, rel=1e-9)
+    # a scene on the laws pays back the BVH's build over the grid's within the ceiling
+    assert cost.break_even(5e-8 * cost.nlog2n(n) ** 1.05 - 1e-3, 2 * p.gain_low["bvh"], p.gain_low["bvh"]) < p.ceiling["bvh"]
     # one scene where the candidate is slower per ray than the grid: no ceiling against it
     slow = recs[:-1] + [SceneRecord("slow", 256000, 1000, {"grid": Measurement(1e-3, 1e-4, 1000),
                                                           "bvh": Measurement(1.0, 2e-4, 1000)})]
     assert "bvh" not in cost.prior(slow, n, ("bvh",)).ceiling
     assert cost.prior(recs[:2], n, ("bvh",)).ceiling == {}  # two scenes bound nothing
+    # a candidate that builds faster than the grid on every scene: a ceiling of 0 (any rays)
+    fast = [SceneRecord(r.name, r.triangles, 1000, {"grid": Measurement(1.0, r.kinds["grid"].trace_time, 1000),
+                                                    "bvh": r.kinds["bvh"]}) for r in recs]
+    assert cost.prior(fast, n, ("bvh",)).ceiling["bvh"] == 0.0
 
 
 def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():

@@ -125,7 +125,8 @@ def test_auto_decides_once_on_the_client_and_workers_build_that_kind(client, tmp
     assert built == {f"{r.scene.label()}:{r.kind}"}, f"workers built {built}, the plan chose {r.kind}"
     assert_same_as_local(got, mesh, r.kind, o, d)
     few = hd.trace(path, do, dd, kind="auto", expected_rays=10)
-    assert few.plan.expected_rays == 10 and few.kind == "grid", "ten rays never pay for a BVH"
+    assert few.plan.expected_rays == 10 and few.kind != "bvh", "ten rays never pay for a numpy BVH"
+    assert few.kind == "grid" or not few.plan.grid_built, "Embree for ten rays only where it builds faster"
     none = hd.trace(path, do[:0], dd[:0])
     assert none.kind == "grid" and none.plan is None and gather(client, none)["t"].shape == (0,)
 

@@ -91,11 +91,12 @@ def test_analyze_settles_for_embree_without_a_grid_above_the_calibrations_ceilin
     assert not p.grid_built and rec["plan"]["grid_built"] is False and p.decision == "EMBREE"
     assert p.samples_traced == 0 and ceiling is not None and p.analyzed_rays >= ceiling
     assert p.break_even_ceiling == pytest.approx(ceiling, rel=1e-6)
-    assert p.break_even_low <= p.break_even_rays <= p.break_even_high == pytest.approx(ceiling, rel=1e-6)
-    assert any("ceiling" in n for n in rec["plan"]["notes"])
-    p.expected_rays = ceiling / 4  # below the ceiling: the sample decides
-    assert analyze() == {"FINISHED"}
-    assert p.grid_built and p.samples_traced > 0 and p.grid_build_time > 0
+    assert p.break_even_low <= p.break_even_rays <= p.break_even_high == pytest.approx(ceiling, rel=1e-6, abs=1e-9)
+    assert any("without a grid or a sample" in n for n in rec["plan"]["notes"])
+    if ceiling > 0:  # below the ceiling the sample decides (0: Embree built faster on every calibration scene)
+        p.expected_rays = ceiling / 4
+        assert analyze() == {"FINISHED"}
+        assert p.grid_built and p.samples_traced > 0 and p.grid_build_time > 0
 
 
 def test_invoke_in_background_runs_synchronously(fresh):

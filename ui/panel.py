@@ -146,7 +146,10 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
         if not props.grid_built:
             kind = {"BVH": "the BVH", "EMBREE": "Embree"}.get(props.break_even_kind, props.break_even_kind.lower())
             col.label(text="Grid: not built")
-            col.label(text=f"  (above {props.break_even_ceiling:,.0f} rays {kind} wins on the calibration alone)")
+            if props.break_even_ceiling > 0:
+                col.label(text=f"  (above {props.break_even_ceiling:,.0f} rays {kind} wins on the calibration alone)")
+            else:
+                col.label(text=f"  ({kind} built faster and traced faster on every calibration scene)")
         else:
             col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
             if props.samples_traced == 0:

@@ -832,8 +832,8 @@ class Prior:
     grid_per_ray: the slowest grid time per ray the calibration scenes imply;
     per_ray: {kind: grid_per_ray less the largest gain per ray any calibration scene showed},
     figures under which each candidate's break-even is at least ``floor / FLOOR_MARGIN``;
-    ceiling: {kind: an upper bound on the break-even against it}, for the candidates that beat
-    the grid per ray on every calibration scene (absent: none);
+    ceiling: {kind: an upper bound on the rays from which building it beats building the grid},
+    for the candidates that beat the grid per ray on every calibration scene (absent: none);
     gain_low: {kind: the least gain per ray t_G - t_H}, the figure the ceiling divides by."""
 
     floor: float = 0.0
@@ -861,10 +861,13 @@ def prior(records: list[SceneRecord], n: int, kinds) -> Prior:
     without a sample, so a plan for so few rays need not pay for one.  No floor without 3
     scenes measuring the grid and each candidate.
 
-    Ceiling, the mirror: R*_H <= T_B,high(N) / g_low(N), the highest build and the least gain,
-    times CEILING_MARGIN, for a candidate that beat the grid per ray on every one of at least
-    3 calibration scenes (Embree, about ten times the grid's speed): above it H wins
-    whatever a sample would say, so a plan for so many rays need not build the grid."""
+    Ceiling, the mirror, before anything is built (the grid's build not yet sunk): building H
+    beats building the grid from R_0 = (T_B^H - T_B^G) / (t_G - t_H) rays on (0 where H builds
+    faster).  Both builds grow about linearly in N and the gain per ray slowly, so R_0 / N is
+    bounded by its largest value on the calibration scenes; the ceiling is CEILING_MARGIN
+    times that, times N, for a candidate that beat the grid per ray on every one of at least 3
+    calibration scenes (Embree, about ten times the grid's speed): above it H wins whatever a
+    sample would say, so a plan for so many rays builds neither the grid nor a sample."""
     grid = [r for r in records if "grid" in r.kinds and r.triangles > 0]
     t_g = _ceiling([r.triangles for r in grid], [r.kinds["grid"].per_ray for r in grid], n) if n > 0 else 0.0
     if not t_g > 0 or not kinds:
@@ -886,9 +889,8 @@ def prior(records: list[SceneRecord], n: int, kinds) -> Prior:
         per_ray[k] = max(t_g - g, 0.0)
         if len(gain) == len(every):  # H faster per ray on every scene: a least gain exists
             cg, pg = _power_envelope([x for x, _ in gain], [y for _, y in gain], "low")
-            low = cg * float(n) ** pg
-            ch, ph = _power_envelope(x_build, [r.kinds[k].build_time for r in have], "high")
-            if low > 0 and ch > 0:
-                gain_low[k] = low
-                ceiling[k] = CEILING_MARGIN * ch * nlog2n(n) ** ph / low
+            gain_low[k] = cg * float(n) ** pg
+            r0 = [max(r.kinds[k].build_time - r.kinds["grid"].build_time, 0.0) / y / r.triangles
+                  for r, (_, y) in zip(have, every)]
+            ceiling[k] = CEILING_MARGIN * max(r0) * float(n)
     return Prior(FLOOR_MARGIN * min(bounds), t_g, per_ray, ceiling, gain_low)
