@@ -344,7 +344,8 @@ def write_markdown(path: Path, R: dict):
           f"{fnum(em['errors']['median_abs'], 1, None)} over {em['errors']['defined']} scenes (sum "
           f"{fnum(em['errors']['sum'], 0, True)}, sum of absolute values {fnum(em['errors']['sum_abs'], 0, None)}). "
           f"Hybrid choosing among grid, BVH and Embree: hybrid / oracle median (i) "
-          f"{fnum(stat(esp, 'hybrid_over_oracle'), 3)} (90th percentile {fnum(stat(esp, 'hybrid_over_oracle', 'p90'), 3)}), "
+          f"{fnum(stat(esp, 'hybrid_over_oracle'), 3)} (90th percentile {fnum(stat(esp, 'hybrid_over_oracle', 'p90'), 3)}, "
+          f"worst {fnum(stat(esp, 'hybrid_over_oracle', 'max'), 2)}), "
           f"(ii) {fnum(stat(esp, 'hybrid_reuse_over_oracle'), 3)} (Embree retraces the sample rays); always-Embree / "
           f"hybrid (i) median {fnum(stat(esp, 'speedup_vs_embree'), 3)}.\n")
         par, cpar = em.get("parallelism"), em.get("calibration_parallelism")
