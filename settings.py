@@ -256,6 +256,10 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         items=(("NONE", "None", "No candidate beats the grid"), ("BVH", "BVH", ""), ("EMBREE", "Embree", "")),
         default="NONE")
     grid_build_time: _time("Grid Build", "Measured build time of the uniform grid")
+    break_even_warning: StringProperty(
+        name="Break-even Warning", description="Why the break-even estimate is ill-conditioned (empty when it "
+        "is not): the grid and the candidate that attains it are close per ray, so a small error in either moves it "
+        "far")
     grid_built: BoolProperty(
         name="Grid Built", default=True,
         description="Whether the analysis built the grid: not when the calibration alone settled the decision "

@@ -125,6 +125,8 @@ class Plan:
     #: the calibration's upper bound on the break-even against the structure it settled
     #: for (inf: the plan measured the grid)
     break_even_ceiling: float = math.inf
+    #: words when the break-even is ill-conditioned (``conditioning``), else ''
+    ill_conditioned: str = ""
     estimate_time: float = 0.0
     plan_time: float = 0.0
     grid_reused: bool = False
@@ -167,6 +169,7 @@ class Plan:
             "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
             "grid_terms": list(self.grid_terms), "break_even_floor": self.break_even_floor,
             "grid_built": self.grid_built, "break_even_ceiling": _json_float(self.break_even_ceiling),
+            "ill_conditioned": self.ill_conditioned,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
@@ -339,13 +342,34 @@ def plan_from_timings(
     certain = not (be_low <= r <= be_high)
     if not certain:
         notes.append(f"{r:,.0f} expected rays lie inside the break-even interval: the choice is uncertain")
+    words = conditioning(grid_per_ray, cands[be_kind].per_ray, be_kind) if be_kind is not None else ""
+    if words:
+        notes.append(words)
     return Plan(
         triangles=n, expected_rays=r, samples=int(samples), grid_build_time=float(grid_build_time),
         grid_per_ray=float(grid_per_ray), candidates=cands, break_even=be, break_even_low=be_low,
         break_even_high=be_high, break_even_kind=be_kind, decision=decision.upper(), certain=certain,
         calibration_source=calibration.source, notes=notes, unavailable=unavailable,
-        break_even_floor=float(floor),
+        break_even_floor=float(floor), ill_conditioned=words,
     )
+
+
+#: the grid's time per ray over the candidate's below which the break-even is ill-conditioned
+#: (R* = T_B / (t_G - t_H) moves by t_G / (t_G - t_H) times a relative error in t_G: 3x at 1.5)
+ILL_CONDITIONED = 1.5
+
+
+def conditioning(grid_per_ray: float, per_ray: float, kind: str) -> str:
+    """Words for an ill-conditioned break-even against ``kind`` (the grid at most
+    ``ILL_CONDITIONED`` times slower per ray), else ''."""
+    if not (per_ray > 0 and grid_per_ray > per_ray):
+        return ""
+    ratio = grid_per_ray / per_ray
+    if ratio >= ILL_CONDITIONED:
+        return ""
+    moves = 10.0 * ratio / (ratio - 1.0)
+    return (f"ill-conditioned: the grid is only {ratio:.2f}x slower per ray than {kind}, so a 10% error in either "
+            f"time moves the break-even by about {moves:.0f}%; near it both cost about the same")
 
 
 def _sample_rays(mesh, rays, k, seed):

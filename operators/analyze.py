@@ -104,6 +104,7 @@ def store_results(props, record):
     props.grid_per_ray = st["grid"]["per_ray"]
     props.samples_traced = record["plan"]["samples"]
     props.grid_built = record["plan"].get("grid_built", True)
+    props.break_even_warning = record["plan"].get("ill_conditioned", "")
     props.break_even_ceiling = min(record["plan"].get("break_even_ceiling") or 0.0, NEVER)
     props.grid_sample_ratio = record["plan"].get("grid_sample_ratio", 1.0)
     work = record["plan"].get("work") or {}

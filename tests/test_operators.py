@@ -56,6 +56,10 @@ def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     # refs are counted only when a count model weighs them; otherwise the panel hides them
     assert p.grid_refs_per_ray == (0.0 if work["refs"] is None else pytest.approx(work["refs"], rel=1e-6))
     assert rec["summary"]["triangles"] == p.triangle_count
+    assert p.break_even_warning == rec["plan"]["ill_conditioned"]
+    rec["plan"]["ill_conditioned"] = "ill-conditioned: the grid is only 1.20x slower per ray than bvh, so a 10% error"
+    addon.operators.analyze.store_results(p, rec)
+    assert p.break_even_warning.startswith("ill-conditioned: the grid is only 1.20x")
 
 
 def test_sidebar_quotes_only_the_counts_the_grid_model_weighed(fresh, addon):

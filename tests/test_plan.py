@@ -407,3 +407,20 @@ def test_the_decision_weighs_the_rays_left_after_the_answered_samples():
     cal2 = cal_of(bvh=(1.0, 1e-7), embree=(0.01 / 10240, 1e-7))
     assert plan_from_timings(N, 4000, cal2, 0.0, 4e-6, answered=1000).decision == "GRID"
     assert plan_from_timings(N, 4000, cal2, 0.0, 4e-6, answered=0).decision == "EMBREE"
+
+
+def test_an_ill_conditioned_break_even_is_said_in_words():
+    """t_G / t_H below 1.5: a 10% error in a time per ray moves R* = T_B / (t_G - t_H) by
+    t_G / (t_G - t_H) times 10%; the plan says so in its field, its notes and its JSON."""
+    cal = cal_of(bvh=(1e-7, 1e-7))  # t_H = 1e-6 at N = 1024
+    close = plan_from_timings(N, 1e6, cal, grid_build_time=0.01, grid_per_ray=1.25e-6, kinds=("grid", "bvh"))
+    assert "1.25x" in close.ill_conditioned and "about 50%" in close.ill_conditioned
+    assert close.ill_conditioned in close.notes and close.to_dict()["ill_conditioned"] == close.ill_conditioned
+    # the stated move is the break-even's own sensitivity
+    moved = plan_from_timings(N, 1e6, cal, grid_build_time=0.01, grid_per_ray=1.25e-6 * 1.001, kinds=("grid", "bvh"))
+    sens = (1 - moved.break_even / close.break_even) / 0.001
+    assert sens == pytest.approx(5.0, rel=0.01)
+    far = plan_from_timings(N, 1e6, cal, grid_build_time=0.01, grid_per_ray=3e-6, kinds=("grid", "bvh"))
+    assert far.ill_conditioned == "" and not any("ill-conditioned" in n for n in far.notes)
+    never = plan_from_timings(N, 1e6, cal, grid_build_time=0.01, grid_per_ray=0.9e-6, kinds=("grid", "bvh"))
+    assert never.ill_conditioned == ""  # the BVH never beats the grid: no break-even to be ill-conditioned

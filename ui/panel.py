@@ -107,6 +107,10 @@ class VIEW3D_PT_hybrid_raycast(_Base, bpy.types.Panel):
         sub.label(text=f"Interval: {interval}")
         if not props.decision_certain:
             sub.label(text="Expected rays inside the interval: uncertain", icon="QUESTION")
+        if props.break_even_warning:  # "ill-conditioned: the grid is only ..., so a 10% error ...; near it ..."
+            head, _, rest = props.break_even_warning.partition(", so ")
+            sub.label(text=head[0].upper() + head[1:], icon="INFO")
+            sub.label(text="  so " + rest.split(";")[0])
 
         icon = plot.panel_preview(scene.name, figures_from_props(props))
         if icon:
