@@ -383,18 +383,8 @@ class TwoLevel:
         # (A, m): where each ray's segment enters each box, and whether it meets it
         near, touch = seg.enter([x[rid][None] for x in seg.o], [x[rid][None] for x in seg.inv],
                                 [c[:, None] for c in lo.T], [c[:, None] for c in hi.T], seg.tmin[rid], seg.tmax[rid])
-        count = touch.sum(axis=1)
-        mean_entry = np.where(touch, near, 0.0).sum(axis=1) / np.maximum(count, 1)
-        for j in np.lexsort((mean_entry, count == 0)):  # nearest mean entry first
-            if count[j] == 0:
-                break
-            i = act[j]
-            if occluded is not None:
-                sel = np.flatnonzero(touch[j] & ~occluded[rid])
-            else:
-                sel = np.flatnonzero(touch[j] & (near[j] <= best.t[rid]))
-            if sel.size == 0:
-                continue
+
+        def call(i, sel):
             ray = rid[sel]
             inst = np.full(sel.size, i, np.int32)
             bottom = self.bottoms[self.instance_bottom[i]]
@@ -404,6 +394,8 @@ class TwoLevel:
                 tmax_pair = np.minimum(rays.tmax[ray], best.t[ray])
                 h = self._call_bottom(bottom, ray, inst, rays, o64, d64, tmax_pair, False, single=True)
                 best.fold(ray, inst, h, self.tri_base)
+
+        _nearest_first(act, near, touch, rid, best, occluded, call)
 
     # many instances: candidate pairs from the tree, traced in rounds per bottom --------
     def _trace_pairs(self, rid, rays, o64, d64, seg, best, occluded):
@@ -457,6 +449,24 @@ class TwoLevel:
     def __repr__(self):
         return (f"<TwoLevel {self.instance_count} instances of {len(self.bottoms)} bottoms, "
                 f"{self.triangle_count} triangles, top level: {'tree' if self._tree is not None else 'loop'}>")
+
+
+def _nearest_first(act, near, touch, rid, best, occluded, call):
+    """The loop path's visit of instances ``act`` (near, touch: (A, m) each ray's box entry
+    and whether it meets the box): nearest mean entry first, each with the rays of ``rid``
+    that reach its box before their best hit so far (or, for ``occluded``, that are not
+    occluded yet), as ``call(instance, selected positions in rid)``."""
+    count = touch.sum(axis=1)
+    mean_entry = np.where(touch, near, 0.0).sum(axis=1) / np.maximum(count, 1)
+    for j in np.lexsort((mean_entry, count == 0)):
+        if count[j] == 0:
+            break
+        if occluded is not None:
+            sel = np.flatnonzero(touch[j] & ~occluded[rid])
+        else:
+            sel = np.flatnonzero(touch[j] & (near[j] <= best.t[rid]))
+        if sel.size:
+            call(int(act[j]), sel)
 
 
 def _usable(o32, d32) -> np.ndarray:
@@ -685,18 +695,8 @@ class Swept:
                 near[j, c], touch[j, c] = seg.enter([x[c] for x in o], [x[c] for x in inv], self._lo[i][:, sc],
                                                     self._hi[i][:, sc], tmin[c], tmax[c])
                 touch[j, c] &= self._live[i][sc]
-            count = touch.sum(axis=1)
-            mean_entry = np.where(touch, near, 0.0).sum(axis=1) / np.maximum(count, 1)
-            for j in np.lexsort((mean_entry, count == 0)):  # nearest mean entry first
-                if count[j] == 0:
-                    break
-                i = act[j]
-                if occluded is not None:
-                    sel = np.flatnonzero(touch[j] & ~occluded[rid])
-                else:
-                    sel = np.flatnonzero(touch[j] & (near[j] <= best.t[rid]))
-                if sel.size == 0:
-                    continue
+
+            def call(i, sel, rid=rid, s=s):
                 ray, ks = rid[sel], s[sel]
                 ai = self._inverse[ks, i]
                 oo = _mul(ai, o64[ray] - self._translation[ks, i])
@@ -713,6 +713,8 @@ class Swept:
                     tmax_pair = np.minimum(rays.tmax[ray], best.t[ray])
                     h = TwoLevel._call_bottom_ok(bottom, o32, d32, rays.tmin[ray], tmax_pair, False)
                     best.fold(ray, np.full(len(ray), i, np.int32), h, two.tri_base)
+
+            _nearest_first(act, near, touch, rid, best, occluded, call)
 
     def __repr__(self):
         return f"<Swept {self.instance_count} instances at {len(self.matrices)} instants, {self.triangle_count} triangles>"
