@@ -728,4 +728,11 @@ def test_a_quick_calibration_measures_everything_and_a_plan_decides_with_it(tmp_
     mesh = S.make_scene("torus", 20000, seed=3)
     p = plan(mesh, 1e6, back, kinds=("grid",) + kinds)
     assert p.decision in {"GRID", "BVH", "EMBREE"} and set(p.candidates) == {"grid", *kinds}
-    assert 0 < p.break_even_low <= p.break_even <= p.break_even_high or p.break_even == math.inf
+    if p.grid_built:
+        assert 0 < p.break_even_low <= p.break_even <= p.break_even_high or p.break_even == math.inf
+    else:  # settled by the calibration alone (Embree): its break-even interval is the floor and the ceiling
+        assert p.decision == "EMBREE" and p.samples == 0 and p.grid is None
+        assert 0 <= p.break_even_low <= p.break_even <= p.break_even_high == p.break_even_ceiling <= 1e6
+    m = plan(mesh, 1e6, back, kinds=("grid", "bvh"), prior=False)  # the measured path, whatever the prior says
+    assert m.grid_built and m.samples > 0
+    assert 0 < m.break_even_low <= m.break_even <= m.break_even_high or m.break_even == math.inf
