@@ -183,6 +183,10 @@ class Plan:
             return "inf" if not math.isfinite(x) else f"{x:,.0f}"
 
         head = f"{self.decision} for {self.expected_rays:,.0f} rays on {self.triangles:,} triangles; "
+        if not self.grid_built:
+            return head + (f"no grid built: on the calibration alone {self.chosen} beats building the grid "
+                           + (f"from at most {num(self.break_even_ceiling)} rays" if self.break_even_ceiling > 0
+                              else "for any number of rays"))
         if not math.isfinite(self.break_even):
             return head + "the grid is always cheapest" + (f" (up to {num(self.break_even_low)} at the low end)"
                                                             if math.isfinite(self.break_even_low) else "")

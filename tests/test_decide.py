@@ -515,6 +515,7 @@ def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():
     assert above.break_even_low <= above.break_even <= above.break_even_high
     d = above.to_dict()
     assert d["grid_built"] is False and d["break_even_ceiling"] == pytest.approx(ceiling)
+    assert "no grid built" in above.summary() and "bvh beats building the grid" in above.summary()
     from hybrid_raycast.core.rays import uniform_rays
 
     hits = above.trace(*uniform_rays(mesh, 500, seed=1)[:2])  # it builds its BVH and traces

@@ -365,16 +365,26 @@ def test_the_panel_draw_code_runs(fresh, addon):
             if k == "calls":
                 object.__setattr__(self, k, v)
 
-    texts, icons = [], []
-    for cls in addon.ui.classes:
-        layout = Rec()
-        panel = type("P", (), {"layout": layout})()
-        cls.draw(panel, bpy.context)
-        texts += [k.get("text", "") for n, a, k in layout.calls if n == "label"]
-        icons += [k.get("icon_value") for n, a, k in layout.calls if n == "template_icon"]
+    def draw():
+        texts, icons = [], []
+        for cls in addon.ui.classes:
+            layout = Rec()
+            panel = type("P", (), {"layout": layout})()
+            cls.draw(panel, bpy.context)
+            texts += [k.get("text", "") for n, a, k in layout.calls if n == "label"]
+            icons += [k.get("icon_value") for n, a, k in layout.calls if n == "template_icon"]
+        return texts, icons
+
+    texts, icons = draw()
     p = props()
     assert any(t == p.decision for t in texts), f"the decision is not drawn: {texts}"
     assert any(t.startswith("Break-even:") for t in texts), texts
+    if not p.grid_built:  # Embree settled by the calibration alone: said so, no grid figures
+        assert "Grid: not built" in texts and any("no grid built" in t for t in texts), texts
+    p.candidates = {"BVH"}
+    analyze()
+    measured, _ = draw()
+    assert any(t.startswith("Grid: build") for t in measured), measured
     # without a GPU (background) previews get no icon id; the pixels are still drawn
     pv = addon.ui.plot._previews.get(f"plot {bpy.context.scene.name}")
     assert pv is not None and tuple(pv.image_size) == (256, 256), "the plot preview was not drawn"

@@ -35,6 +35,12 @@ def _secs(x: float) -> str:
 
 def break_even_text(props) -> tuple[str, str]:
     """(point, interval) as the panel shows them."""
+    if not props.grid_built:  # settled by the calibration alone: no grid to keep
+        kind = props.break_even_kind.capitalize() if props.break_even_kind != "BVH" else "BVH"
+        if props.break_even_ceiling <= 0:
+            return f"none: {kind} from the first ray (no grid built)", "the calibration's"
+        return (f"at most {_rays(props.break_even_ceiling)} rays (no grid built)",
+                f"[{_rays(props.break_even_low)} - {_rays(props.break_even_high)}], the calibration's")
     point = "never (the grid always wins)" if props.break_even_infinite else f"{_rays(props.break_even_rays)} rays"
     lo = "inf" if props.break_even_low_infinite else _rays(props.break_even_low)
     hi = "inf" if props.break_even_high_infinite else _rays(props.break_even_high)

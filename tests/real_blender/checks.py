@@ -83,6 +83,7 @@ res = bpy.ops.hybrid_raycast.scene_summary()
 check("summary operator finishes on the default cube", res == {"FINISHED"}, str(res))
 check("default cube has 12 triangles", props.triangle_count == 12, str(props.triangle_count))
 props.expected_rays = 1e6
+props.candidates = {"BVH"}  # the measured path (with Embree the calibration may settle it alone: below)
 res = bpy.ops.hybrid_raycast.analyze()
 check("analyze finishes", res == {"FINISHED"}, str(res))
 check("analyze decides", props.decision in {"GRID", "BVH", "EMBREE"}, props.decision)
@@ -100,6 +101,14 @@ check("grid estimate is the sample time times this machine's batch ratio (0 < ra
 check("grid per ray = sample x ratio",
       abs(props.grid_per_ray - plan["grid_sample_per_ray"] * plan["grid_sample_ratio"]) <= 1e-5 * props.grid_per_ray,
       f"{props.grid_per_ray} vs {plan['grid_sample_per_ray']} x {plan['grid_sample_ratio']}")
+props.candidates = {"BVH", "EMBREE"}
+res = bpy.ops.hybrid_raycast.analyze()
+plan = json.loads(props.last_analysis_json)["plan"]
+check("with Embree: a grid measured, or Embree settled by the calibration without one",
+      res == {"FINISHED"} and (props.grid_built and props.samples_traced > 0
+                               or (not props.grid_built and props.decision == "EMBREE" and props.samples_traced == 0
+                                   and plan["grid_built"] is False)),
+      f"{res}, grid built {props.grid_built}, {props.decision}, samples {props.samples_traced}")
 check("results fresh after analyze", not props.stale, props.stale_reason)
 bpy.data.objects["Camera"].location.x += 1
 bpy.context.evaluated_depsgraph_get()
