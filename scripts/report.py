@@ -203,6 +203,11 @@ def write_markdown(path: Path, R: dict):
     for row in summ["headline"]:
         w(f"| {row['measure']} | {row['goal']} | {row['value']} | {row['met']} |")
     w("")
+    ic = summ.get("interval_coverage")
+    if ic and ic["scenes"]:
+        w(f"The break-even interval against the numpy BVH (the calibration's spread) holds the measured R_C on "
+          f"{ic['held']} of {ic['scenes']} scenes ({fnum(ic['percent'], 0)}%; goal 90%); its upper end is 'never' on "
+          f"{ic['never_above']} of them.\n")
     rc = summ.get("rc_repeatability")
     if rc:
         w(f"R_C's own repeatability: the interleaved repeats of each scene's builds and traces give break-evens whose "

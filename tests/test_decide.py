@@ -919,3 +919,12 @@ def test_a_plan_and_a_calibration_keep_the_grid_traversal_counts_of_their_sample
                         check_version=False)
     assert back.scenes[0].work["tests"] == pytest.approx(w.tests) and "refs" not in back.scenes[0].work
     assert cost.terms(3000, back.scenes[0].work)["steps"] == pytest.approx(w.steps)
+
+
+def test_interval_coverage_counts_the_scenes_whose_interval_holds_r_c_and_the_open_ones():
+    def scene(lo, hi):  # R_C = 0.02 / (1e-6 - 1e-7) = 22,222
+        return ev.SceneResult("x", 1000, 10, cost.Cost.point("grid", 0.01, 1e-6), costs_of(bvh=(0.02, 1e-7)),
+                              costs_of(bvh=(0.02, 1e-7)), 1e-6, 0.005, 100,
+                              extra={"break_even_low": lo, "break_even_high": hi})
+    got = ev.interval_coverage([scene(10_000, 30_000), scene(10_000, None), scene(30_000, 40_000), scene(1, 2_000)])
+    assert got == {"scenes": 4, "held": 2, "percent": 50.0, "never_above": 1}

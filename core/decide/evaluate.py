@@ -400,6 +400,24 @@ def estimate_cost_percent(s: SceneResult, rays: float = COST_AT, reuse: bool = F
     return 100.0 * float(net) / float(s.grid.total_time(rays))
 
 
+def interval_coverage(scenes) -> dict:
+    """How often the plan's break-even interval against the numpy BVH (``Plan`` break_even_low
+    / high, the calibration's spread) holds the measured R_C, and how often its upper end is
+    'never' (a cover that says little)."""
+    held, open_top, n = 0, 0, 0
+    for s in scenes:
+        lo, hi = s.extra.get("break_even_low"), s.extra.get("break_even_high")
+        if lo is None and hi is None:
+            continue
+        lo = math.inf if lo is None else float(lo)
+        hi = math.inf if hi is None else float(hi)
+        rc = true_break_even(s)
+        n += 1
+        held += int(lo <= rc <= hi)
+        open_top += int(not math.isfinite(hi))
+    return {"scenes": n, "held": held, "percent": 100.0 * held / n if n else math.nan, "never_above": open_top}
+
+
 def median_per_ray(scenes, kinds=("grid", "bvh")) -> dict:
     """Median over the scenes of each structure's measured time per ray (seconds)."""
     out = {}
@@ -1128,6 +1146,7 @@ def summarise(scenes, kinds) -> dict:
         "median_per_ray": median_per_ray(scenes, ("grid",) + tuple(kinds)),
         "speedups": speedup_summary(scenes, RAY_COUNTS, ("bvh",)),
         "picks": pick_accuracy(scenes), "picks_total": pick_accuracy(scenes, sunk_grid=False),
+        "interval_coverage": interval_coverage(scenes),
         "by_ray_count": rows, "wasted_builds": {"cases": wasted, "of": len(scenes) * len(RAY_COUNTS)},
         "rc_repeatability": ({"median": float(np.median(spreads)), "max": float(np.max(spreads)), "scenes": len(spreads)}
                              if spreads else None),
@@ -1171,7 +1190,7 @@ __all__ = [
     "break_even", "calibration_parallelism", "calibration_repeatability", "calls_of_1000", "choose_defaults",
     "chosen_cost", "constants_apart", "count_comparison", "decide_model", "error_components", "error_summary",
     "estimate_cost_percent", "estimated_break_even", "fit_model", "fnum", "grid_estimators", "grid_sample_ratios",
-    "held_out_errors", "hybrid_choice", "hybrid_reuse_choice", "hybrid_totals", "large_builds", "leave_one_out",
+    "held_out_errors", "hybrid_choice", "interval_coverage", "hybrid_reuse_choice", "hybrid_totals", "large_builds", "leave_one_out",
     "log2n", "loo_break_even_errors", "measure_scene", "measure_truths", "median_abs", "median_finite",
     "median_per_ray", "model_comparison", "model_functions", "never_agreement", "nlog2n", "online_switch",
     "parallelism_summary", "pick_accuracy", "plan_repeatability", "reestimate", "relative_difference",
