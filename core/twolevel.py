@@ -107,6 +107,15 @@ class _Best:
         self.u = np.zeros(m, F32)
         self.v = np.zeros(m, F32)
 
+    def into(self, out: "InstanceHits") -> "InstanceHits":
+        """Write the nearest hits into ``out`` (``InstanceHits.empty``: a miss stays as it is)."""
+        hit = self.inst >= 0
+        out.t[:] = self.t
+        out.triangle[hit] = self.g[hit]
+        out.u[:], out.v[:] = self.u, self.v
+        out.instance[:], out.local_triangle[:] = self.inst, self.local
+        return out
+
     def fold(self, ray, inst, h: Hits, tri_base):
         """Fold in one bottom call's hits for pairs (ray, inst): the nearest per ray, an
         exact tie in t to the lowest global triangle (a ray may come several times)."""
@@ -346,12 +355,7 @@ class TwoLevel:
             return out
         best = _Best(m)
         self._run(rays, best, occluded=None)
-        hit = best.inst >= 0
-        out.t[:] = best.t
-        out.triangle[hit] = best.g[hit]
-        out.u[:], out.v[:] = best.u, best.v
-        out.instance[:], out.local_triangle[:] = best.inst, best.local
-        return out
+        return best.into(out)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some instance's triangle is hit with tmin < t <= tmax
@@ -655,12 +659,7 @@ class Swept:
             return out
         best = _Best(m)
         self._run(rays, slot, best, None)
-        hit = best.inst >= 0
-        out.t[:] = best.t
-        out.triangle[hit] = best.g[hit]
-        out.u[:], out.v[:] = best.u, best.v
-        out.instance[:], out.local_triangle[:] = best.inst, best.local
-        return out
+        return best.into(out)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> np.ndarray:
         """(M,) bool: some instance, placed at the ray's instant, hit with tmin < t <= tmax."""
