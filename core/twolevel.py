@@ -679,9 +679,9 @@ class Swept:
         act = self._active
         for sl in two._chunks(len(rays), self.ray_chunk):
             rid = np.arange(sl.start, sl.stop)
-            s = slot[rid]
-            o, inv = [x[rid] for x in seg.o], [x[rid] for x in seg.inv]
-            tmin, tmax = seg.tmin[rid], seg.tmax[rid]
+            s = slot[sl]  # the chunk's columns as views: a chunk is a run of rays
+            o, inv = [x[sl] for x in seg.o], [x[sl] for x in seg.inv]
+            tmin, tmax = seg.tmin[sl], seg.tmax[sl]
             near, touch = np.full((act.size, rid.size), np.inf), np.zeros((act.size, rid.size), bool)
             for j, i in enumerate(act.tolist()):
                 # the rays that meet the instance's box over the whole sweep, then each of them
