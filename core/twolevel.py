@@ -107,13 +107,15 @@ class _Best:
         self.u = np.zeros(m, F32)
         self.v = np.zeros(m, F32)
 
-    def into(self, out: "InstanceHits") -> "InstanceHits":
-        """Write the nearest hits into ``out`` (``InstanceHits.empty``: a miss stays as it is)."""
+    def into(self, out: "InstanceHits", rows=None) -> "InstanceHits":
+        """Write the nearest hits into ``out`` (``InstanceHits.empty``: a miss stays as it
+        is), at ``rows`` of it when this holds only those rays (the rest stay misses)."""
+        at = slice(None) if rows is None else rows
+        out.t[at] = self.t
+        out.u[at], out.v[at] = self.u, self.v
+        out.instance[at], out.local_triangle[at] = self.inst, self.local
         hit = self.inst >= 0
-        out.t[:] = self.t
-        out.triangle[hit] = self.g[hit]
-        out.u[:], out.v[:] = self.u, self.v
-        out.instance[:], out.local_triangle[:] = self.inst, self.local
+        out.triangle[np.flatnonzero(hit) if rows is None else rows[hit]] = self.g[hit]
         return out
 
     def fold(self, ray, inst, h: Hits, tri_base):
@@ -483,6 +485,12 @@ def _usable(o32, d32) -> np.ndarray:
     return (fin[:, 0] & fin[:, 1] & fin[:, 2]) & ((d32[:, 0] != 0) | (d32[:, 1] != 0) | (d32[:, 2] != 0))
 
 
+def _one_origin(origins) -> bool:
+    """Whether every row of ``origins`` is the first: one row, or a broadcast of one."""
+    o = np.asarray(origins)
+    return o.ndim == 1 or len(o) <= 1 or o.strides[0] == 0
+
+
 def _mul(a, x):
     """(P, 3) rows ``a @ x`` for one (3, 3) ``a`` or one per row (P, 3, 3), in float64."""
     out = np.empty_like(x)
@@ -633,6 +641,10 @@ class Swept:
         self._active = np.flatnonzero(self._live.any(axis=1)).astype(np.int32)
         with np.errstate(invalid="ignore"):  # (I, 3) each instance's box over every instant (inf where never)
             self._sweep_lo, self._sweep_hi = lo.min(axis=0), hi.max(axis=0)
+        # the active instances' balls around their sweep boxes, for ``_reach``
+        a_lo, a_hi = self._sweep_lo[self._active], self._sweep_hi[self._active]
+        self._ball_c = 0.5 * (a_lo + a_hi)
+        self._ball_r = 0.5 * np.sqrt(((a_hi - a_lo) ** 2).sum(axis=1))
         self.triangle_count = two.triangle_count
         self.triangle_dtype = two.triangle_dtype
         self.ray_chunk = max(1, min(two.ray_chunk, two.pair_limit // max(1, self._active.size)))
@@ -655,11 +667,12 @@ class Swept:
         m = len(rays)
         slot = self._slots(slot, m)
         out = InstanceHits.empty(m, self.triangle_dtype)
-        if m == 0 or self._active.size == 0:
+        rows = self._reach(rays, _one_origin(origins))
+        if rows.size == 0:
             return out
-        best = _Best(m)
-        self._run(rays, slot, best, None)
-        return best.into(out)
+        best = _Best(rows.size)
+        self._run(rays.subset(rows), slot[rows], best, None)
+        return best.into(out, rows)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> np.ndarray:
         """(M,) bool: some instance, placed at the ray's instant, hit with tmin < t <= tmax."""
@@ -667,9 +680,64 @@ class Swept:
         m = len(rays)
         slot = self._slots(slot, m)
         hit = np.zeros(m, bool)
-        if m and self._active.size:
-            self._run(rays, slot, None, hit)
+        rows = self._reach(rays, _one_origin(origins))
+        if rows.size:
+            sub = np.zeros(rows.size, bool)
+            self._run(rays.subset(rows), slot[rows], None, sub)
+            hit[rows] = sub
         return hit
+
+    #: ``_reach``'s margins: a ball's radius grows by this share of itself and of the
+    #: origin's distance to its centre, and each ray's interval by this share of its own
+    #: reach, far beyond float32's rounding of the distances (a few 1e-7 of them), so the
+    #: test only lets through more rays than the exact one, never fewer
+    REACH_MARGIN = 1e-3
+
+    def _reach(self, rays, one_origin: bool) -> np.ndarray:
+        """The rows of the rays whose segment [tmin, tmax] may come near some active
+        instance over the whole sweep: a float32 test against a ball around each one's
+        sweep box, with ``REACH_MARGIN``.  A rotating sensor's rays mostly miss the few
+        movers, and the exact box tests in float64 (``_run``) then cost only for the rest.
+        ``one_origin``: every ray starts at the first one's origin (a still sensor).  A NaN
+        or overflow in the test keeps the ray.
+
+        Written with products by (3, k) matrices and per-coordinate columns: numpy's
+        reductions and broadcasts over rows of 3 cost several times more."""
+        m = len(rays)
+        if m == 0 or self._active.size == 0:
+            return np.zeros(0, np.intp)
+        o, d = rays.origins, rays.directions
+        ones = np.ones(3, F32)
+        dd = np.square(d) @ ones
+        eps = F32(self.REACH_MARGIN)
+        # the radius also covers the centre's rounding to float32
+        grown = (self._ball_r * (1.0 + self.REACH_MARGIN)
+                 + 4.0 * np.spacing(np.abs(self._ball_c).max(axis=1).astype(F32))).astype(F32)
+        keep = np.zeros(m, bool)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            if one_origin:  # the centres seen from the origin, exactly in float64
+                w = self._ball_c - o[0].astype(np.float64)
+                ww_all = (w * w).sum(axis=1).astype(F32)
+                wd_all = np.ascontiguousarray((d @ w.T.astype(F32)).T)
+            else:
+                o_cols = np.ascontiguousarray(o.T)
+                d_cols = np.ascontiguousarray(d.T)
+            for a in range(len(grown)):
+                if one_origin:
+                    ww, wd = ww_all[a], wd_all[a]
+                else:
+                    c = self._ball_c[a].astype(F32)
+                    w = [c[k] - o_cols[k] for k in range(3)]
+                    ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+                    wd = w[0] * d_cols[0] + w[1] * d_cols[1] + w[2] * d_cols[2]
+                tp = wd / dd                   # where the line comes nearest the centre
+                off2 = ww - tp * tp * dd       # its squared distance from it there
+                re = grown[a] + eps * np.sqrt(ww)
+                h = np.sqrt(np.maximum(re * re - off2, F32(0)) / dd)  # half the chord, in t
+                slack = eps * (np.abs(tp) + h)
+                out = (off2 > re * re) | (tp + h < rays.tmin - slack) | (tp - h > rays.tmax + slack)
+                keep |= ~out
+        return np.flatnonzero(keep)
 
     def _run(self, rays, slot, best, occluded):
         two = self.two
@@ -780,9 +848,7 @@ class Split:
             hi[rows] = np.minimum(hi[rows], out.t[rows])
         if self.moving is None or m == 0:
             return out
-        o64 = np.broadcast_to(o32.astype(np.float64), (m, 3))
-        d64 = np.broadcast_to(d32.astype(np.float64), (m, 3))
-        hm = self.moving.trace(o64, d64, lo, np.maximum(hi, lo), **({} if slot is None else {"slot": slot}))
+        hm = self.moving.trace(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo, np.maximum(hi, lo), **({} if slot is None else {"slot": slot}))
         mg = hm.triangle >= 0
         take = mg & ((out.triangle < 0) | (hm.t < out.t) | ((hm.t == out.t) & (hm.triangle.astype(np.int64) < out.triangle)))
         out.t[take] = hm.t[take]

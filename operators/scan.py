@@ -675,8 +675,10 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
             plan = [(np.arange(n_beams), 0.0)]
         else:
             block_of, mids = motion.sweep_blocks(pat.time, duration, n_blocks)
-            plan = [(np.flatnonzero(block_of == b), float(mids[b])) for b in range(n_blocks)]
-            plan = [(m, at) for m, at in plan if len(m)]
+            # each block's beams in increasing order: one stable sort, not a pass per block
+            members = np.split(np.argsort(block_of, kind="stable"),
+                               np.cumsum(np.bincount(block_of, minlength=n_blocks))[:-1])
+            plan = [(m, float(at)) for m, at in zip(members, mids) if len(m)]
     echoes = []
     used = structure
     instants = None

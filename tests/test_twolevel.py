@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from hybrid_raycast import core
+from hybrid_raycast.core import twolevel
 from hybrid_raycast.core.twolevel import InstanceHits, TwoLevel
 from reference import cube, describe_ray, icosphere, kind_params, reference_for_mesh
 
@@ -473,6 +474,68 @@ def test_swept_gives_each_ray_what_its_instants_two_level_gives_it(kind):
         assert np.array_equal(hit_any[rows], want.triangle >= 0), f"{kind}: occluded differs at instant {k}"
     assert not (got.instance[slot == 2] == 1).any()
     assert got.hit[slot == 0].mean() > 0.3  # aimed at the first instant (a fifth with a short tmax)
+
+
+@pytest.mark.parametrize("one_origin", [False, True])
+@pytest.mark.parametrize("far", [0.0, 1e4])
+def test_swept_reach_keeps_every_ray_that_meets_a_sweep_box(far, one_origin):
+    """The float32 cull before the exact box tests (``Swept._reach``) keeps every ray whose
+    float64 test meets some instance's box over the sweep: rays aimed at the boxes'
+    corners, edges and faces with a relative jitter of 1e-7, some with a zero direction
+    component, segments ending at the target or starting just past it, origins inside the
+    boxes; near the world origin and 1e4 from it.  Rays pointing away are culled."""
+    ib, matrices, *_ = random_scene(5)
+    two = TwoLevel(bottoms_of("brute"), ib, matrices)
+    rng = np.random.default_rng(11)
+    instants = np.stack([matrices, scene_matrices(5, rng)])
+    instants[:, :, :3, 3] += far
+    swept = core.Swept(two, instants)
+    lo, hi = swept._sweep_lo[swept._active], swept._sweep_hi[swept._active]
+    m = 20000
+    box = rng.integers(0, len(lo), m)
+    corner = rng.integers(0, 2, (m, 3)).astype(float)
+    kind = rng.integers(0, 3, m)  # 0 a corner, 1 on an edge, 2 on a face
+    free = rng.uniform(0, 1, (m, 3))
+    ax = rng.integers(0, 3, m)
+    frac = corner.copy()
+    frac[kind >= 1, ax[kind >= 1]] = free[kind >= 1, ax[kind >= 1]]
+    ax2 = (ax + 1) % 3
+    frac[kind == 2, ax2[kind == 2]] = free[kind == 2, ax2[kind == 2]]
+    target = lo[box] + frac * (hi[box] - lo[box])
+    target *= 1.0 + rng.choice([-1e-7, 0.0, 1e-7], (m, 3))
+    centre = 0.5 * (lo + hi).mean(axis=0)
+    if one_origin:
+        origins = np.broadcast_to(centre + rng.uniform(-30, 30, 3), (m, 3))
+    else:
+        origins = centre + rng.uniform(-30, 30, (m, 3))
+        inside = rng.random(m) < 0.1  # some start inside their box
+        origins[inside] = lo[box][inside] + rng.uniform(0, 1, (inside.sum(), 3)) * (hi - lo)[box][inside]
+    d = target - origins
+    flat_axis = rng.random(m) < 0.2
+    if not one_origin:  # a zero component: the origin moved onto the target's plane
+        origins[flat_axis, ax[flat_axis]] = target[flat_axis, ax[flat_axis]]
+        d[flat_axis, ax[flat_axis]] = 0.0
+    d[rng.random(m) < 0.1] *= -1.0  # some pointing away
+    o32, d32 = origins.astype(np.float32), d.astype(np.float32)
+    tmin = np.where(rng.random(m) < 0.2, np.float32(1.0 + 1e-6), np.float32(0.0))
+    tmax = np.where(rng.random(m) < 0.3, np.float32(1.0 - 1e-6), np.float32(np.inf))
+    tmax = np.maximum(tmax, tmin)
+    rays = core.prepare_rays(np.broadcast_to(o32[:1], (m, 3)) if one_origin else o32, d32, tmin, tmax, shear=False)
+    seg = twolevel._Segments(rays.origins.astype(np.float64), rays.directions.astype(np.float64), rays.tmin, rays.tmax)
+    meets = np.zeros(m, bool)
+    for a in range(len(lo)):
+        meets |= seg.enter(seg.o, seg.inv, lo[a], hi[a], seg.tmin, seg.tmax)[1]
+    kept = np.zeros(m, bool)
+    kept[swept._reach(rays, one_origin)] = True
+    missed = np.flatnonzero(meets & ~kept)
+    assert missed.size == 0, f"{missed.size} rays meet a sweep box but were culled, first {describe_ray(missed[0], o32, d32)}"
+    assert meets.mean() > 0.3
+    # rays from far outside every ball, pointing away from the scene: all culled
+    u = rng.normal(size=(1000, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    reach = 100.0 + np.linalg.norm(np.concatenate([lo, hi]) - centre, axis=1).max()
+    away = core.prepare_rays((centre + reach * u).astype(np.float32), u.astype(np.float32), shear=False)
+    assert swept._reach(away, False).size == 0, "rays pointing away from every box were kept"
 
 
 def test_swept_rejects_bad_instants_and_slots():
