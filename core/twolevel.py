@@ -249,6 +249,9 @@ class TwoLevel:
         self._lo, self._hi = lo, hi
         self._active = active.astype(np.int32)
         self._tree = _TopTree(lo[active], hi[active]) if active.size >= self.pairs_from else None
+        # the loop path first keeps the rays near some instance (``near_rays``); the tree
+        # path's top level culls by itself
+        self._balls = balls(lo[active], hi[active]) if self._tree is None else None
 
     def with_matrices(self, matrices) -> "TwoLevel":
         """The same bottoms, instances and global indices at new placements: only the top
@@ -353,11 +356,12 @@ class TwoLevel:
         rays = self._prepare(origins, directions, tmin, tmax)
         m = len(rays)
         out = InstanceHits.empty(m, self.triangle_dtype)
-        if m == 0 or self._active.size == 0:
+        rows = self._near(rays, origins)
+        if m == 0 or self._active.size == 0 or (rows is not None and rows.size == 0):
             return out
-        best = _Best(m)
-        self._run(rays, best, occluded=None)
-        return best.into(out)
+        best = _Best(m if rows is None else rows.size)
+        self._run(rays if rows is None else rays.subset(rows), best, occluded=None)
+        return best.into(out, rows)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some instance's triangle is hit with tmin < t <= tmax
@@ -365,10 +369,21 @@ class TwoLevel:
         rays = self._prepare(origins, directions, tmin, tmax)
         m = len(rays)
         hit = np.zeros(m, bool)
-        if m == 0 or self._active.size == 0:
+        rows = self._near(rays, origins)
+        if m == 0 or self._active.size == 0 or (rows is not None and rows.size == 0):
             return hit
-        self._run(rays, None, occluded=hit)
+        if rows is None:
+            self._run(rays, None, occluded=hit)
+        else:
+            sub = np.zeros(rows.size, bool)
+            self._run(rays.subset(rows), None, occluded=sub)
+            hit[rows] = sub
         return hit
+
+    def _near(self, rays, origins):
+        """The loop path's rays that come near some instance (``near_rays``), or None on
+        the tree path (all rays)."""
+        return None if self._balls is None else near_rays(rays, *self._balls, one_origin(origins))
 
     def _run(self, rays, best, occluded):
         o64 = rays.origins.astype(np.float64)
@@ -485,7 +500,66 @@ def _usable(o32, d32) -> np.ndarray:
     return (fin[:, 0] & fin[:, 1] & fin[:, 2]) & ((d32[:, 0] != 0) | (d32[:, 1] != 0) | (d32[:, 2] != 0))
 
 
-def _one_origin(origins) -> bool:
+def balls(lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (A, 3), radii (A,)) float64 of the balls around boxes (lo, hi) (A, 3)."""
+    lo, hi = np.asarray(lo, np.float64).reshape(-1, 3), np.asarray(hi, np.float64).reshape(-1, 3)
+    return 0.5 * (lo + hi), 0.5 * np.sqrt(((hi - lo) ** 2).sum(axis=1))
+
+
+#: ``near_rays``' margin: a ball's radius grows by this share of itself and of the origin's
+#: distance to its centre, and each ray's interval by this share of its own reach, far
+#: beyond float32's rounding of the distances (a few 1e-7 of them), so the test only lets
+#: through more rays than an exact one, never fewer
+REACH_MARGIN = 1e-3
+
+
+def near_rays(rays, centres, radii, same_origin: bool) -> np.ndarray:
+    """The rows of prepared ``rays`` whose segment [tmin, tmax] may come within ``radii``
+    of some of ``centres``: a float32 test with ``REACH_MARGIN``, before the exact float64
+    box tests of a few instances.  A rotating sensor's or a camera's rays mostly miss a few
+    movers, which then cost only for the rays that pass near them.  ``same_origin``: every
+    ray starts at the first one's origin.  A NaN or overflow in the test keeps the ray.
+
+    Written with products by (3, k) matrices and per-coordinate columns: numpy's
+    reductions and broadcasts over rows of 3 cost several times more."""
+    m = len(rays)
+    if m == 0 or len(radii) == 0:
+        return np.zeros(0, np.intp)
+    o, d = rays.origins, rays.directions
+    dd = np.square(d) @ np.ones(3, F32)
+    eps = F32(REACH_MARGIN)
+    centres = np.asarray(centres, np.float64)
+    # the radius also covers the centre's rounding to float32
+    grown = (np.asarray(radii, np.float64) * (1.0 + REACH_MARGIN)
+             + 4.0 * np.spacing(np.abs(centres).max(axis=1).astype(F32))).astype(F32)
+    keep = np.zeros(m, bool)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        if same_origin:  # the centres seen from the origin, exactly in float64
+            w = centres - o[0].astype(np.float64)
+            ww_all = (w * w).sum(axis=1).astype(F32)
+            wd_all = np.ascontiguousarray((d @ w.T.astype(F32)).T)
+        else:
+            o_cols = np.ascontiguousarray(o.T)
+            d_cols = np.ascontiguousarray(d.T)
+        for a in range(len(grown)):
+            if same_origin:
+                ww, wd = ww_all[a], wd_all[a]
+            else:
+                c = centres[a].astype(F32)
+                w = [c[k] - o_cols[k] for k in range(3)]
+                ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+                wd = w[0] * d_cols[0] + w[1] * d_cols[1] + w[2] * d_cols[2]
+            tp = wd / dd                   # where the line comes nearest the centre
+            off2 = ww - tp * tp * dd       # its squared distance from it there
+            re = grown[a] + eps * np.sqrt(ww)
+            h = np.sqrt(np.maximum(re * re - off2, F32(0)) / dd)  # half the chord, in t
+            slack = eps * (np.abs(tp) + h)
+            out = (off2 > re * re) | (tp + h < rays.tmin - slack) | (tp - h > rays.tmax + slack)
+            keep |= ~out
+    return np.flatnonzero(keep)
+
+
+def one_origin(origins) -> bool:
     """Whether every row of ``origins`` is the first: one row, or a broadcast of one."""
     o = np.asarray(origins)
     return o.ndim == 1 or len(o) <= 1 or o.strides[0] == 0
@@ -641,10 +715,8 @@ class Swept:
         self._active = np.flatnonzero(self._live.any(axis=1)).astype(np.int32)
         with np.errstate(invalid="ignore"):  # (I, 3) each instance's box over every instant (inf where never)
             self._sweep_lo, self._sweep_hi = lo.min(axis=0), hi.max(axis=0)
-        # the active instances' balls around their sweep boxes, for ``_reach``
-        a_lo, a_hi = self._sweep_lo[self._active], self._sweep_hi[self._active]
-        self._ball_c = 0.5 * (a_lo + a_hi)
-        self._ball_r = 0.5 * np.sqrt(((a_hi - a_lo) ** 2).sum(axis=1))
+        # the active instances' balls around their boxes over the sweep, for ``near_rays``
+        self._balls = balls(self._sweep_lo[self._active], self._sweep_hi[self._active])
         self.triangle_count = two.triangle_count
         self.triangle_dtype = two.triangle_dtype
         self.ray_chunk = max(1, min(two.ray_chunk, two.pair_limit // max(1, self._active.size)))
@@ -667,7 +739,7 @@ class Swept:
         m = len(rays)
         slot = self._slots(slot, m)
         out = InstanceHits.empty(m, self.triangle_dtype)
-        rows = self._reach(rays, _one_origin(origins))
+        rows = near_rays(rays, *self._balls, one_origin(origins))
         if rows.size == 0:
             return out
         best = _Best(rows.size)
@@ -680,64 +752,13 @@ class Swept:
         m = len(rays)
         slot = self._slots(slot, m)
         hit = np.zeros(m, bool)
-        rows = self._reach(rays, _one_origin(origins))
+        rows = near_rays(rays, *self._balls, one_origin(origins))
         if rows.size:
             sub = np.zeros(rows.size, bool)
             self._run(rays.subset(rows), slot[rows], None, sub)
             hit[rows] = sub
         return hit
 
-    #: ``_reach``'s margins: a ball's radius grows by this share of itself and of the
-    #: origin's distance to its centre, and each ray's interval by this share of its own
-    #: reach, far beyond float32's rounding of the distances (a few 1e-7 of them), so the
-    #: test only lets through more rays than the exact one, never fewer
-    REACH_MARGIN = 1e-3
-
-    def _reach(self, rays, one_origin: bool) -> np.ndarray:
-        """The rows of the rays whose segment [tmin, tmax] may come near some active
-        instance over the whole sweep: a float32 test against a ball around each one's
-        sweep box, with ``REACH_MARGIN``.  A rotating sensor's rays mostly miss the few
-        movers, and the exact box tests in float64 (``_run``) then cost only for the rest.
-        ``one_origin``: every ray starts at the first one's origin (a still sensor).  A NaN
-        or overflow in the test keeps the ray.
-
-        Written with products by (3, k) matrices and per-coordinate columns: numpy's
-        reductions and broadcasts over rows of 3 cost several times more."""
-        m = len(rays)
-        if m == 0 or self._active.size == 0:
-            return np.zeros(0, np.intp)
-        o, d = rays.origins, rays.directions
-        ones = np.ones(3, F32)
-        dd = np.square(d) @ ones
-        eps = F32(self.REACH_MARGIN)
-        # the radius also covers the centre's rounding to float32
-        grown = (self._ball_r * (1.0 + self.REACH_MARGIN)
-                 + 4.0 * np.spacing(np.abs(self._ball_c).max(axis=1).astype(F32))).astype(F32)
-        keep = np.zeros(m, bool)
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            if one_origin:  # the centres seen from the origin, exactly in float64
-                w = self._ball_c - o[0].astype(np.float64)
-                ww_all = (w * w).sum(axis=1).astype(F32)
-                wd_all = np.ascontiguousarray((d @ w.T.astype(F32)).T)
-            else:
-                o_cols = np.ascontiguousarray(o.T)
-                d_cols = np.ascontiguousarray(d.T)
-            for a in range(len(grown)):
-                if one_origin:
-                    ww, wd = ww_all[a], wd_all[a]
-                else:
-                    c = self._ball_c[a].astype(F32)
-                    w = [c[k] - o_cols[k] for k in range(3)]
-                    ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-                    wd = w[0] * d_cols[0] + w[1] * d_cols[1] + w[2] * d_cols[2]
-                tp = wd / dd                   # where the line comes nearest the centre
-                off2 = ww - tp * tp * dd       # its squared distance from it there
-                re = grown[a] + eps * np.sqrt(ww)
-                h = np.sqrt(np.maximum(re * re - off2, F32(0)) / dd)  # half the chord, in t
-                slack = eps * (np.abs(tp) + h)
-                out = (off2 > re * re) | (tp + h < rays.tmin - slack) | (tp - h > rays.tmax + slack)
-                keep |= ~out
-        return np.flatnonzero(keep)
 
     def _run(self, rays, slot, best, occluded):
         two = self.two

@@ -282,10 +282,11 @@ class _Call:
         def bound(x):
             return x if x.ndim == 0 else x[a:b]
 
-        o, d = self.o[a:b], self.d[a:b]
-        # a chunk of the caller's arrays, or of a broadcast row: float32 copies of the chunk only
-        return (np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
-                bound(self.tmin), bound(self.tmax))
+        # a chunk of the caller's arrays: float32 copies of the chunk only; a broadcast row
+        # stays one (the structures see one origin, and fill their float32 rows by columns)
+        o, d = (np.broadcast_to(np.asarray(x[:1], np.float32), (b - a, 3)) if x.strides[0] == 0 else
+                np.ascontiguousarray(x[a:b], np.float32) for x in (self.o, self.d))
+        return o, d, bound(self.tmin), bound(self.tmax)
 
     def query(self, rays, any_hit=False, flat=True, slot=None):
         return self.session.query(*rays, any_hit=any_hit, structure=self.structure, budget=self.budget,

@@ -252,7 +252,7 @@ class Session:
             self._summary["bounds"] = [x.tolist() for x in self.layout.bounds()]
         return self._summary
 
-    def tracer(self, kind: str, rays=None, **config):
+    def tracer(self, kind: str, rays=None, batch=None, **config):
         """What traces with ``kind``: the flat structure while the scene has not changed
         since its first call; after a change, a ``core.Split``: a flat structure over the
         placements that stayed put (built once while they do, shared by the sessions that
@@ -263,10 +263,12 @@ class Session:
         The lines between them are the paper's decision on each structure's life: a scene
         that stays put keeps its first session, where one flat structure traces fastest (a
         top level costs per ray; BENCHMARKS.md, "Two-level scenes"); what moved is rebuilt
-        flat when it has fewer triangles than the session's first batch has rays (``rays``:
-        the rays until the next change, as far as is known; the build, linear in triangles,
-        costs less than the top level, linear in rays), else placed on two levels, which
-        builds nothing but the top level."""
+        flat when it has fewer triangles than the rays its top level would take (the build
+        is linear in triangles, the top level in rays), else placed on two levels, which
+        builds nothing but the top level.  Those rays: of the session's first batch
+        (``rays``: the rays until the next change, as far as is known), for a few moved
+        placements only those passing near them (``_rays_near``: the loop top level tests
+        nothing else), estimated on a sample of ``batch`` (origins, directions, tmin, tmax)."""
         if not self.changed and not self.instanced:
             return self.structure(kind, **config)
         cfg = tuple(sorted(config.items()))
@@ -280,7 +282,8 @@ class Session:
             soups = [self._soup(kind, config, np.flatnonzero(still))] if still.any() else []
             moved_tris = int(sum(len(lay.groups[g].tris) for g in lay.placement_group[moving].tolist()))
             two = None
-            if len(moving) and rays is not None and moved_tris <= rays and self.sweep is None:
+            if len(moving) and rays is not None and self.sweep is None and \
+                    moved_tris <= self._rays_near(lay, moving, rays, batch):
                 mesh, glob, inst, local = lay.soup(moving)
                 soups.append((core.build(mesh.prepare(), kind, **config), glob, inst, local))
                 moving = moving[:0]
@@ -300,6 +303,43 @@ class Session:
             self.timings["bottom_builds"] += t1 - t0
             self.timings["top_level"] += time.perf_counter() - t1
         return acc
+
+    #: rays of a batch sampled to estimate how many pass near the moved placements
+    NEAR_SAMPLE = 4096
+
+    @staticmethod
+    def _rays_near(lay, moving, rays: int, batch) -> float:
+        """How many of ``rays`` a top level over the ``moving`` placements would take: all
+        of them on the tree path (``core.twolevel.PAIRS_FROM`` placements and more), else
+        those passing near a placement's box (``core.twolevel.near_rays``), estimated on
+        every k-th ray of ``batch``."""
+        if batch is None or len(moving) >= core.twolevel.PAIRS_FROM:
+            return rays
+        o, d, tmin, tmax = (np.asarray(x) for x in batch)
+        o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+        n = max(len(o), len(d))
+        pick = slice(None, None, max(1, n // Session.NEAR_SAMPLE))
+        one = core.twolevel.one_origin(o)
+        d_s = np.broadcast_to(d, (n, 3))[pick]
+        o_s = np.broadcast_to(o[:1] if one else np.broadcast_to(o, (n, 3))[pick], d_s.shape)
+        sample = core.prepare_rays(o_s, d_s, tmin if tmin.ndim == 0 else tmin[pick],
+                                   tmax if tmax.ndim == 0 else tmax[pick], shear=False)
+        # each moved placement's world box: the 8 corners of its mesh's object box through its matrix
+        bits = (np.arange(8)[:, None] >> np.arange(3)) & 1
+        lo, hi = [], []
+        for i in moving.tolist():
+            g = lay.groups[lay.placement_group[i]]
+            if len(g.tris):
+                # a kept mesh read's box is computed once (``TriangleMesh.bounds``)
+                blo, bhi = (g.read.local_mesh() if g.read is not None else core.TriangleMesh(g.co, g.tris)).bounds()
+                corners = np.where(bits, bhi, blo).astype(np.float64)
+                w = corners @ lay.matrices[i, :3, :3].T + lay.matrices[i, :3, 3]
+                lo.append(w.min(axis=0))
+                hi.append(w.max(axis=0))
+        if not lo:
+            return 0.0
+        near = core.twolevel.near_rays(sample, *core.twolevel.balls(np.array(lo), np.array(hi)), one)
+        return near.size * rays / len(sample)
 
     @property
     def traced_layout(self):
@@ -534,7 +574,7 @@ class Session:
     def _query(self, o, d, tmin, tmax, any_hit, structure, budget, kinds, calibration, samples, grid_config, flat,
                extra):
         # the structures of a changed scene serve this session's rays: this batch's, until the next change
-        pick = self.structure if flat else (lambda kind, **c: self.tracer(kind, rays=len(o), **c))
+        pick = self.structure if flat else (lambda kind, **c: self.tracer(kind, rays=len(o), batch=(o, d, tmin, tmax), **c))
         if structure != "auto":
             acc = pick("grid", **grid_config) if structure == "grid" else pick(structure)
             t0 = time.perf_counter()

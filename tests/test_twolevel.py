@@ -479,7 +479,7 @@ def test_swept_gives_each_ray_what_its_instants_two_level_gives_it(kind):
 @pytest.mark.parametrize("one_origin", [False, True])
 @pytest.mark.parametrize("far", [0.0, 1e4])
 def test_swept_reach_keeps_every_ray_that_meets_a_sweep_box(far, one_origin):
-    """The float32 cull before the exact box tests (``Swept._reach``) keeps every ray whose
+    """The float32 cull before the exact box tests (``twolevel.near_rays``) keeps every ray whose
     float64 test meets some instance's box over the sweep: rays aimed at the boxes'
     corners, edges and faces with a relative jitter of 1e-7, some with a zero direction
     component, segments ending at the target or starting just past it, origins inside the
@@ -526,7 +526,7 @@ def test_swept_reach_keeps_every_ray_that_meets_a_sweep_box(far, one_origin):
     for a in range(len(lo)):
         meets |= seg.enter(seg.o, seg.inv, lo[a], hi[a], seg.tmin, seg.tmax)[1]
     kept = np.zeros(m, bool)
-    kept[swept._reach(rays, one_origin)] = True
+    kept[twolevel.near_rays(rays, *swept._balls, one_origin)] = True
     missed = np.flatnonzero(meets & ~kept)
     assert missed.size == 0, f"{missed.size} rays meet a sweep box but were culled, first {describe_ray(missed[0], o32, d32)}"
     assert meets.mean() > 0.3
@@ -535,7 +535,7 @@ def test_swept_reach_keeps_every_ray_that_meets_a_sweep_box(far, one_origin):
     u /= np.linalg.norm(u, axis=1)[:, None]
     reach = 100.0 + np.linalg.norm(np.concatenate([lo, hi]) - centre, axis=1).max()
     away = core.prepare_rays((centre + reach * u).astype(np.float32), u.astype(np.float32), shear=False)
-    assert swept._reach(away, False).size == 0, "rays pointing away from every box were kept"
+    assert twolevel.near_rays(away, *swept._balls, False).size == 0, "rays pointing away from every box were kept"
 
 
 def test_swept_rejects_bad_instants_and_slots():
