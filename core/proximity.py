@@ -112,12 +112,40 @@ def closest_on_triangles(p, a, b, c):
     """The closest point of each triangle (a, b, c) to p, all (P, 3) float64: (squared
     distance (P,), u (P,), v (P,)) with the point (1-u-v) a + u b + v c.  Ericson's regions
     (Real-Time Collision Detection, 5.1.5), vectorised; the triangles are not degenerate."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    return closest_on_columns(*([x[:, k] for k in range(3)] for x in (p, a, b, c)))
+
+
+def _dot(x, y):
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
+#: point-triangle pairs ``closest_on_columns`` takes at a time: its forty-odd passes then
+#: work on arrays that stay in the core's cache instead of streaming through memory
+KERNEL_BLOCK = 1 << 13
+
+
+def closest_on_columns(p, a, b, c):
+    """``closest_on_triangles`` with each of p, a, b, c given as its three coordinate
+    columns (P,), in blocks of ``KERNEL_BLOCK`` pairs."""
+    n = len(p[0])
+    if n <= KERNEL_BLOCK:
+        return _closest_block(p, a, b, c)
+    d2, u, v = np.empty(n), np.empty(n), np.empty(n)
+    for s in range(0, n, KERNEL_BLOCK):
+        sl = slice(s, s + KERNEL_BLOCK)
+        d2[sl], u[sl], v[sl] = _closest_block(*([x[sl] for x in y] for y in (p, a, b, c)))
+    return d2, u, v
+
+
+def _closest_block(p, a, b, c):
+    ab = [b[k] - a[k] for k in range(3)]
+    ac = [c[k] - a[k] for k in range(3)]
+    ap = [p[k] - a[k] for k in range(3)]
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    bp = [p[k] - b[k] for k in range(3)]
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    cp = [p[k] - c[k] for k in range(3)]
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
     vc = d1 * d4 - d3 * d2
     vb = d5 * d2 - d1 * d6
     va = d3 * d6 - d5 * d4
@@ -136,9 +164,8 @@ def closest_on_triangles(p, a, b, c):
     regions = [in_a, in_b, in_ab, in_c, in_ac, in_bc]
     u = np.select(regions, [0.0, 1.0, s_ab, 0.0, 0.0, 1.0 - s_bc], f_u)
     v = np.select(regions, [0.0, 0.0, 0.0, 1.0, s_ac, s_bc], f_v)
-    q = a + u[:, None] * ab + v[:, None] * ac
-    d = p - q
-    return np.einsum("ij,ij->i", d, d), u, v
+    d = [p[k] - (a[k] + u * ab[k] + v * ac[k]) for k in range(3)]
+    return _dot(d, d), u, v
 
 
 def _better(d2, tri, best_d2, best_tri):
@@ -287,6 +314,9 @@ class TreeIndex:
         b32[:, :3] = np.where(b32[:, :3] > rel[:, :3], np.nextafter(b32[:, :3], np.float32(-np.inf)), b32[:, :3])
         b32[:, 3:] = np.where(b32[:, 3:] < rel[:, 3:], np.nextafter(b32[:, 3:], np.float32(np.inf)), b32[:, 3:])
         self.boxes32 = np.ascontiguousarray(b32)
+        #: (T, 9) each triangle's corners in a row (v0 x, y, z, v1 ..., v2 ...): ``np.take``
+        #: of whole rows gathers from a large mesh fastest
+        self.corner_rows = self.tv64.reshape(-1, 9)
         self.slot = ~np.isnan(self.boxes[:, 0, 0, :])  # (W, 4) a child is there
         self._dipoles = None
 
@@ -359,11 +389,12 @@ class TreeIndex:
         return levels
 
 
-def _walk(m: int):
+def _walk(m: int, start=None):
     """Depth first over pieces of (row, node) pairs, each at most ``PAIRS`` long, from every
-    row at the root: yields (rows, node, pieces), and the caller appends the next level's
-    pairs to ``pieces``, so the working memory stays bounded whatever the tree holds."""
-    pieces = [(np.arange(m), np.zeros(m, np.int64))]
+    row at the root (or from the (rows, nodes) pieces ``start``): yields (rows, node,
+    pieces), and the caller appends the next level's pairs to ``pieces``, so the working
+    memory stays bounded whatever the tree holds."""
+    pieces = [(np.arange(m), np.zeros(m, np.int64))] if start is None else list(start)
     while pieces:
         rows, node = pieces.pop()
         if rows.size > PAIRS:
@@ -378,14 +409,21 @@ def _walk(m: int):
 OPEN_MARGIN = 1e-5
 
 
-def _box_d2(p32, boxes32):
-    """Squared distance (float32) from each p (F, 3) to each of the 4 child boxes
-    (F, 6, 4: lo x, y, z then hi x, y, z, by slot): (F, 4), NaN for an empty slot."""
-    q = p32[:, :, None]
-    gap = np.subtract(boxes32[:, :3], q)
-    np.maximum(gap, q - boxes32[:, 3:], out=gap)
-    np.maximum(gap, np.float32(0), out=gap)
-    return np.einsum("fak,fak->fk", gap, gap)
+def _box_d2(p32, boxes32, node):
+    """Squared distance (float32) from each p (F, 3) to each of the 4 child boxes of its
+    ``node`` (F,) (``boxes32`` (W, 6, 4): lo x, y, z then hi x, y, z, by slot): (F, 4), NaN
+    for an empty slot.  In blocks of ``KERNEL_BLOCK`` pairs, for the cache."""
+    f = len(node)
+    out = np.empty((f, 4), np.float32)
+    for s in range(0, f, KERNEL_BLOCK):
+        sl = slice(s, s + KERNEL_BLOCK)
+        bx = np.take(boxes32, node[sl], axis=0)  # np.take of whole rows: faster than indexing
+        q = p32[sl, :, None]
+        gap = np.subtract(bx[:, :3], q)
+        np.maximum(gap, q - bx[:, 3:], out=gap)
+        np.maximum(gap, np.float32(0), out=gap)
+        np.einsum("fak,fak->fk", gap, gap, out=out[sl])
+    return out
 
 
 def _rounding(p32) -> np.ndarray:
@@ -402,6 +440,16 @@ def _open(d2_32, best_d2, slack):
         return d2_32 <= thr[:, None]
 
 
+def _measure(index: TreeIndex, p, owner, leaf, best):
+    """Fold every triangle of each (point ``owner``, ``leaf``) pair into ``best`` exactly."""
+    own, tri = index.leaf_pairs(owner, leaf)
+    c = np.take(index.corner_rows, tri, axis=0)
+    q = np.take(p, own, axis=0)
+    d2, u, v = closest_on_columns(*([x[:, k] for k in ks] for x, ks in ((q, range(3)), (c, range(3)),
+                                                                         (c, range(3, 6)), (c, range(6, 9)))))
+    _reduce_pairs(own, tri, d2, u, v, best)
+
+
 def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
     """The closest point of checked points ``p`` by branch and bound, vectorised over
     (point, node) pairs: every child box nearer than the point's best distance so far is
@@ -414,33 +462,39 @@ def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
         return _nearest(p, best, index.tv64)
     tv = index.tv64
 
-    first_leaf = np.full(m, -1, np.int64)  # the greedy descent's leaf: measured once, not again
-
-    def measure(owner, leaf):
-        again = first_leaf[owner] == leaf
-        if again.any():
-            owner, leaf = owner[~again], leaf[~again]
-        own, tri = index.leaf_pairs(owner, leaf)
-        t = tv[tri]
-        d2, u, v = closest_on_triangles(p[own], t[:, 0], t[:, 1], t[:, 2])
-        _reduce_pairs(own, tri, d2, u, v, best)
+    def measure(owner, leaf):  # each (point, leaf) comes once: the path's, or under one sibling
+        _measure(index, p, owner, leaf, best)
 
     p32 = (p - index.centre).astype(np.float32)
     slack = _rounding(p32)
-    # a bound for every point: down the nearest child box to a leaf
+    # a bound for every point: down the nearest child box to a leaf, keeping each level's
+    # box distances
     node = np.zeros(m, np.int64)
     rows = np.arange(m)
+    path = []
     while rows.size:
-        d2 = _box_d2(p32[rows], index.boxes32[node])
+        d2 = _box_d2(p32[rows], index.boxes32, node)
         j = np.argmin(np.where(np.isnan(d2), np.float32(np.inf), d2), axis=1)
+        path.append((rows, node, d2, j))
         child = index.children[node, j]
         leaf = child < 0
         measure(rows[leaf], ~child[leaf])
-        first_leaf[rows[leaf]] = ~child[leaf]
         rows, node = rows[~leaf], child[~leaf]
+    # every box off a point's path lies under a sibling of a path node: the siblings its
+    # bound does not rule out are where the search goes on (the path itself is done)
+    start = []
+    for rows, node, d2, j in path:
+        near = _open(d2, best[0][rows], slack[rows])
+        near[np.arange(len(rows)), j] = False
+        r, jj = np.nonzero(near)
+        own, child = rows[r], index.children[node[r], jj]
+        leaf = child < 0
+        measure(own[leaf], ~child[leaf])
+        if (~leaf).any():
+            start.append((own[~leaf], child[~leaf]))
     # branch and bound, depth first over bounded pieces of (point, node) pairs
-    for rows, node, pieces in _walk(m):
-        r, j = np.nonzero(_open(_box_d2(p32[rows], index.boxes32[node]), best[0][rows], slack[rows]))
+    for rows, node, pieces in _walk(m, start):
+        r, j = np.nonzero(_open(_box_d2(p32[rows], index.boxes32, node), best[0][rows], slack[rows]))
         own, child = rows[r], index.children[node[r], j]
         leaf = child < 0
         measure(own[leaf], ~child[leaf])

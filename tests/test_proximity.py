@@ -80,6 +80,25 @@ def test_an_exact_tie_goes_to_the_lowest_triangle_index(kind):
     assert (got.triangle < 2).all() and (got.triangle >= 0).all()
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_ties_across_leaves_go_to_the_lowest_index_as_the_brute_force(kind):
+    """Points right above (and on) the vertices and edge midpoints of a flat grid of 800
+    triangles: equally close to up to six triangles that sit in different leaves; the
+    search keeps every box that ties its bound open, so it picks the brute force's."""
+    k = 20
+    x, y = np.meshgrid(np.linspace(0, 1, k + 1), np.linspace(0, 1, k + 1))
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    i = np.arange(k * k)
+    a = (i // k) * (k + 1) + i % k
+    mesh = mesh_of(v, np.concatenate([np.stack([a, a + 1, a + k + 2], 1), np.stack([a, a + k + 2, a + k + 1], 1)]))
+    g = np.linspace(0, 1, 2 * k + 1)
+    gx, gy = np.meshgrid(g, g)
+    pts = np.concatenate([np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], 1) for z in (0.0, 0.01, 0.3)])
+    want = core.build(mesh, "brute").closest(pts)
+    got = core.build(mesh, kind).closest(pts)
+    assert np.array_equal(got.triangle, want.triangle) and np.array_equal(got.distance, want.distance)
+
+
 @pytest.mark.parametrize("kind", KINDS + ["brute"])
 def test_max_distance_is_inclusive_and_a_miss_is_documented(kind):
     v, f = cube()
