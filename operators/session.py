@@ -393,14 +393,14 @@ class Session:
                     "triangles": int(len(glob)),
                     "why": ("these placements stayed put since the last change: one flat structure, kept while "
                             "they do") if still else
-                           ("moved, and fewer triangles than the call's rays: rebuilt flat")})
+                           ("moved, and fewer triangles than the call's rays passing near it: rebuilt flat")})
             if acc.moving is not None:
                 out["parts"].append({
                     "kind": kind, "form": "two levels", "placements": int(acc.moving.instance_count),
                     "triangles": int(acc.moving.triangle_count),
                     "why": (f"moved within the sweep: one structure per mesh, built once, each ray meeting it "
                             f"placed at the ray's own instant (of {len(self.sweep[1])})") if self.sweep is not None else
-                           "moved, with more triangles than the call's rays: one structure per mesh, built once, "
+                           "moved, with more triangles than the call's rays passing near it: one structure per mesh, built once, "
                            "placed under a top level"})
         if self.instanced:
             out["instanced"] = (f"instancing multiplies {unique:,} unique triangles {lay.triangle_count / max(unique, 1):.0f}"

@@ -215,6 +215,27 @@ def test_two_level_hits_give_every_field_of_a_fresh_flat_extraction(fresh, addon
     assert np.allclose(r.instance_matrices, inst.matrices)
 
 
+def test_movers_no_ray_passes_near_go_on_two_levels_whatever_the_ray_count(fresh, addon):
+    """The rebuild-or-two-levels line counts the rays that pass near the moved objects: 3,000
+    rays pointing up, away from everything, leave the movers on two levels; the same number
+    aimed at the scene rebuilds them flat (fewer triangles than rays near them)."""
+    obs = _placements()
+    session, core = addon.operators.session, addon.core
+    rng = np.random.default_rng(5)
+    o = np.stack([rng.uniform(-6, 6, 3000), rng.uniform(-6, 6, 3000), np.full(3000, 8.0)], axis=1)
+    down = np.stack([rng.uniform(-0.4, 0.4, 3000), rng.uniform(-0.4, 0.4, 3000), -np.ones(3000)], axis=1)
+    addon.api.cast(o, down, structure="bvh")
+    forms = {}
+    for name, d in (("up", down * [1.0, 1.0, -1.0]), ("down", down)):
+        obs[1].location.x += 0.25  # a change: a new session decides again
+        r = addon.api.cast(o, d, structure="bvh")
+        tracer = session.get(bpy.context.evaluated_depsgraph_get()).tracer("bvh")
+        assert isinstance(tracer, core.Split), tracer
+        forms[name] = tracer.moving is not None
+        assert name == "down" or not r.hit.any()
+    assert forms == {"up": True, "down": False}, forms
+
+
 def test_nan_vertices_in_one_object_leave_out_its_bad_triangles_with_one_warning(fresh, addon):
     from blender_scenes import make_nan
 
