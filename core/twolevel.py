@@ -354,31 +354,18 @@ class TwoLevel:
         origins, directions: (M, 3), or one (3,) row broadcast against the other's M rows;
         tmin, tmax: scalars or (M,).  Returns ``InstanceHits``."""
         rays = self._prepare(origins, directions, tmin, tmax)
-        m = len(rays)
-        out = InstanceHits.empty(m, self.triangle_dtype)
-        rows = self._near(rays, origins)
-        if m == 0 or self._active.size == 0 or (rows is not None and rows.size == 0):
+        out = InstanceHits.empty(len(rays), self.triangle_dtype)
+        if len(rays) == 0 or self._active.size == 0:
             return out
-        best = _Best(m if rows is None else rows.size)
-        self._run(rays if rows is None else rays.subset(rows), best, occluded=None)
-        return best.into(out, rows)
+        return _nearest_of(rays, self._near(rays, origins), out, lambda sub, rows, best: self._run(sub, best, None))
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some instance's triangle is hit with tmin < t <= tmax
         (each ray stops at its first hit instance)."""
         rays = self._prepare(origins, directions, tmin, tmax)
-        m = len(rays)
-        hit = np.zeros(m, bool)
-        rows = self._near(rays, origins)
-        if m == 0 or self._active.size == 0 or (rows is not None and rows.size == 0):
-            return hit
-        if rows is None:
-            self._run(rays, None, occluded=hit)
-        else:
-            sub = np.zeros(rows.size, bool)
-            self._run(rays.subset(rows), None, occluded=sub)
-            hit[rows] = sub
-        return hit
+        if len(rays) == 0 or self._active.size == 0:
+            return np.zeros(len(rays), bool)
+        return _any_of(rays, self._near(rays, origins), lambda sub, rows, hit: self._run(sub, None, hit))
 
     def _near(self, rays, origins):
         """The loop path's rays that come near some instance (``near_rays``), or None on
@@ -557,6 +544,29 @@ def near_rays(rays, centres, radii, same_origin: bool) -> np.ndarray:
             out = (off2 > re * re) | (tp + h < rays.tmin - slack) | (tp - h > rays.tmax + slack)
             keep |= ~out
     return np.flatnonzero(keep)
+
+
+def _nearest_of(rays, rows, out: InstanceHits, run) -> InstanceHits:
+    """The nearest hits of ``rays`` into ``out``, traced only for ``rows`` (None: all; the
+    rest stay misses): ``run(those rays, rows, _Best over them)``."""
+    if rows is not None and rows.size == 0:
+        return out
+    best = _Best(len(rays) if rows is None else rows.size)
+    run(rays if rows is None else rays.subset(rows), slice(None) if rows is None else rows, best)
+    return best.into(out, rows)
+
+
+def _any_of(rays, rows, run) -> np.ndarray:
+    """(M,) bool any-hit of ``rays``, traced only for ``rows`` (None: all):
+    ``run(those rays, rows, their (R,) bool to set)``."""
+    hit = np.zeros(len(rays), bool)
+    if rows is None:
+        run(rays, slice(None), hit)
+    elif rows.size:
+        sub = np.zeros(rows.size, bool)
+        run(rays.subset(rows), rows, sub)
+        hit[rows] = sub
+    return hit
 
 
 def one_origin(origins) -> bool:
@@ -739,26 +749,16 @@ class Swept:
         m = len(rays)
         slot = self._slots(slot, m)
         out = InstanceHits.empty(m, self.triangle_dtype)
-        rows = near_rays(rays, *self._balls, one_origin(origins))
-        if rows.size == 0:
-            return out
-        best = _Best(rows.size)
-        self._run(rays.subset(rows), slot[rows], best, None)
-        return best.into(out, rows)
+        return _nearest_of(rays, near_rays(rays, *self._balls, one_origin(origins)), out,
+                           lambda sub, rows, best: self._run(sub, slot[rows], best, None))
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> np.ndarray:
         """(M,) bool: some instance, placed at the ray's instant, hit with tmin < t <= tmax."""
         rays = TwoLevel._prepare(origins, directions, tmin, tmax)
         m = len(rays)
         slot = self._slots(slot, m)
-        hit = np.zeros(m, bool)
-        rows = near_rays(rays, *self._balls, one_origin(origins))
-        if rows.size:
-            sub = np.zeros(rows.size, bool)
-            self._run(rays.subset(rows), slot[rows], None, sub)
-            hit[rows] = sub
-        return hit
-
+        return _any_of(rays, near_rays(rays, *self._balls, one_origin(origins)),
+                       lambda sub, rows, hit: self._run(sub, slot[rows], None, hit))
 
     def _run(self, rays, slot, best, occluded):
         two = self.two
@@ -869,7 +869,8 @@ class Split:
             hi[rows] = np.minimum(hi[rows], out.t[rows])
         if self.moving is None or m == 0:
             return out
-        hm = self.moving.trace(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo, np.maximum(hi, lo), **({} if slot is None else {"slot": slot}))
+        hm = self.moving.trace(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo, np.maximum(hi, lo),
+                               **({} if slot is None else {"slot": slot}))
         mg = hm.triangle >= 0
         take = mg & ((out.triangle < 0) | (hm.t < out.t) | ((hm.t == out.t) & (hm.triangle.astype(np.int64) < out.triangle)))
         out.t[take] = hm.t[take]
