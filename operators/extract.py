@@ -310,11 +310,14 @@ class _Group:
     """One evaluated mesh and every placement of it (positions in the instance iteration)."""
 
     __slots__ = ("co", "tris", "poly", "where", "entries", "matrices", "normals", "uvs", "slots", "slot_tables",
-                 "slot_table_of", "table_of", "key", "read")
+                 "slot_table_of", "table_of", "key", "read", "fresh")
 
     def __init__(self, co, tris, poly, corners, me=None, attributes=(), read=None):
         self.key = None  # the mesh's identity across calls (``mesh_key``), when cached
         self.read = read
+        #: read from the evaluated mesh in this call, not found kept from an earlier one (new,
+        #: edited or deforming): a structure built over it serves no earlier or later frame
+        self.fresh = read is None
         if read is not None:  # the same evaluated mesh as a call before: its arrays, not read again
             self.co, self.tris, self.poly, self.normals, self.uvs, self.slots = read.arrays
             self._placements()

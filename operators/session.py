@@ -187,6 +187,10 @@ INSTANCED_FROM = 8
 TIMING_KEYS = ("extract", "bottom_builds", "top_level", "trace")
 
 
+#: the scene summary's words for moved placements rebuilt flat
+MOVED_FLAT = "moved, and fewer triangles than the call's rays passing near it: rebuilt flat"
+
+
 @dataclass(eq=False)
 class Session:
     """One scene + view layer's extraction, its structures and its running totals.
@@ -202,6 +206,8 @@ class Session:
     attributes: frozenset = frozenset()
     #: (kind, sorted config items) -> Accel
     structures: dict = field(default_factory=dict)
+    #: structures' key -> why its moved placements were rebuilt flat (the scene summary's words)
+    rebuilt_why: dict = field(default_factory=dict)
     #: the plan of the first cast (``api``), and of the analysis when it made this session
     plan: object = None
     analysis_plan: object = None
@@ -262,13 +268,15 @@ class Session:
 
         The lines between them are the paper's decision on each structure's life: a scene
         that stays put keeps its first session, where one flat structure traces fastest (a
-        top level costs per ray; BENCHMARKS.md, "Two-level scenes"); what moved is rebuilt
-        flat when it has fewer triangles than the rays its top level would take (the build
-        is linear in triangles, the top level in rays), else placed on two levels, which
-        builds nothing but the top level.  Those rays: of the session's first batch
-        (``rays``: the rays until the next change, as far as is known), for a few moved
-        placements only those passing near them (``_rays_near``: the loop top level tests
-        nothing else), estimated on a sample of ``batch`` (origins, directions, tmin, tmax)."""
+        top level costs per ray; BENCHMARKS.md, "Two-level scenes"); a mesh read afresh
+        (deformed, edited, new) is rebuilt flat, as it must be built anyway; a moved mesh
+        kept from before is rebuilt flat when it has fewer triangles than the rays its top
+        level would take (the build is linear in triangles, the top level in rays), else
+        placed on two levels, whose bottom is built once for every frame that moves it.
+        Those rays: of the session's first batch (``rays``: the rays until the next change,
+        as far as is known), for a few moved placements only those passing near them
+        (``_rays_near``: the loop top level tests nothing else), estimated on a sample of
+        ``batch`` (origins, directions, tmin, tmax)."""
         if not self.changed and not self.instanced:
             return self.structure(kind, **config)
         cfg = tuple(sorted(config.items()))
@@ -280,13 +288,24 @@ class Session:
             moving = np.flatnonzero(~still)
             t0 = time.perf_counter()
             soups = [self._soup(kind, config, np.flatnonzero(still))] if still.any() else []
-            moved_tris = int(sum(len(lay.groups[g].tris) for g in lay.placement_group[moving].tolist()))
             two = None
-            if len(moving) and rays is not None and self.sweep is None and \
-                    moved_tris <= self._rays_near(lay, moving, rays, batch):
-                mesh, glob, inst, local = lay.soup(moving)
-                soups.append((core.build(mesh.prepare(), kind, **config), glob, inst, local))
-                moving = moving[:0]
+            if len(moving) and self.sweep is None:
+                # after a change, a mesh read afresh (deforming, edited, new) is built now
+                # whatever its form: flat, as that traces fastest (an instanced scene keeps its
+                # copies on two levels); a moved mesh kept from before, when it has fewer
+                # triangles than the rays passing near it
+                fresh = np.array([lay.groups[g].fresh for g in lay.placement_group[moving].tolist()], bool) \
+                    if self.changed and not self.instanced else np.zeros(len(moving), bool)
+                kept_tris = int(sum(len(lay.groups[g].tris) for g in lay.placement_group[moving[~fresh]].tolist()))
+                flat = fresh.copy()
+                if (~fresh).any() and rays is not None and kept_tris <= self._rays_near(lay, moving[~fresh], rays, batch):
+                    flat[:] = True
+                if flat.any():
+                    mesh, glob, inst, local = lay.soup(moving[flat])
+                    soups.append((core.build(mesh.prepare(), kind, **config), glob, inst, local))
+                    self.rebuilt_why[k] = (MOVED_FLAT if (flat & ~fresh).any() else
+                                           "read afresh this call (deformed, edited or new): rebuilt flat")
+                    moving = moving[~flat]
             t1 = time.perf_counter()
             if len(moving):
                 groups = np.unique(lay.placement_group[moving])
@@ -393,7 +412,7 @@ class Session:
                     "triangles": int(len(glob)),
                     "why": ("these placements stayed put since the last change: one flat structure, kept while "
                             "they do") if still else
-                           ("moved, and fewer triangles than the call's rays passing near it: rebuilt flat")})
+                           self.rebuilt_why.get(key, MOVED_FLAT)})
             if acc.moving is not None:
                 out["parts"].append({
                     "kind": kind, "form": "two levels", "placements": int(acc.moving.instance_count),

@@ -236,6 +236,27 @@ def test_movers_no_ray_passes_near_go_on_two_levels_whatever_the_ray_count(fresh
     assert forms == {"up": True, "down": False}, forms
 
 
+def test_a_deforming_mesh_is_rebuilt_flat_beside_a_moved_one_on_two_levels(fresh, addon):
+    """A mesh read afresh (the wave deforms every frame) is built whatever its form, so it
+    is rebuilt flat; a moved mesh kept from before stays on two levels when no ray passes
+    near it; the hits equal a fresh flat extraction's."""
+    scene, wave, mover, empty = _scene()
+    session, core = addon.operators.session, addon.core
+    o, d = _rays(3000)
+    addon.api.cast(o, d, structure="bvh")
+    scene.frame_set(5)  # the wave deforms
+    mover.location.x += 0.5
+    up = addon.api.cast(o, -d, structure="bvh")
+    tracer = session.get(bpy.context.evaluated_depsgraph_get()).tracer("bvh")
+    assert isinstance(tracer, core.Split) and tracer.moving is not None and tracer.moving.instance_count == 1
+    assert len(tracer.soups) == 2, tracer  # the still placements, then the wave rebuilt
+    whys = [p["why"] for p in up.scene["parts"]]
+    assert "afresh" in whys[1] and "two levels" == up.scene["parts"][2]["form"], up.scene["parts"]
+    r = addon.api.cast(o, d, structure="bvh")  # the same session: its structures as they are
+    mesh, ref = _fresh_flat(addon, o, d)
+    assert np.array_equal(r.hit, ref.hit) and np.allclose(r.t[r.hit], ref.t[ref.hit], rtol=1e-5, atol=1e-5)
+
+
 def test_nan_vertices_in_one_object_leave_out_its_bad_triangles_with_one_warning(fresh, addon):
     from blender_scenes import make_nan
 
