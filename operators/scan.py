@@ -515,17 +515,33 @@ def _pattern(model, phys):
 
 
 def _beam_poses(pose_times, poses, firing, members=None):
-    """(rotations (B, 3, 3), origins (B, 3)): the sensor's pose at each beam's firing time
-    (``motion.interpolate_poses``), interpolated once per distinct time: ``firing`` =
-    (distinct times, each beam's one); ``members``: only these beams."""
+    """The sensor's pose at each beam's firing time (``motion.interpolate_poses``),
+    interpolated once per distinct time: (rotations (T, 3, 3), origins (T, 3), each beam's
+    time (B,) in 0..T-1); ``firing`` = (distinct times, each beam's one); ``members``: only
+    these beams."""
     times, at = firing
     if members is not None:
         used, at = np.unique(at[members], return_inverse=True)
         times = times[used]
     p = motion.interpolate_poses(pose_times, np.stack(poses), times)
+    return np.ascontiguousarray(p[:, :3, :3]), np.ascontiguousarray(p[:, :3, 3]), at
+
+
+def _sub_rays(rot, origin, at, rows, samples):
+    """(origins, directions) world of beams fired from poses (``rot`` (T, 3, 3), ``origin``
+    (T, 3) per distinct time, ``at`` (B,) each beam's): each beam's ``samples`` consecutive
+    sensor-frame sub-ray directions of ``rows`` (B * samples, 3).  A spinning sensor fires
+    its channels together, time after time: then one product per time over its group of
+    rows, instead of a rotation gathered and applied per beam."""
+    t, b = len(rot), len(at)
+    group = b // t if t and b % t == 0 else 0
+    if group and np.array_equal(at, np.repeat(np.arange(t), group)):
+        d = np.matmul(rows.reshape(t, group * samples, 3), rot.transpose(0, 2, 1)).reshape(-1, 3)
+        return np.repeat(origin, group * samples, axis=0), d
     # np.take of contiguous rows: a fancy index of the strided views gathers several times slower
-    return (np.take(np.ascontiguousarray(p[:, :3, :3]), at, axis=0),
-            np.take(np.ascontiguousarray(p[:, :3, 3]), at, axis=0))
+    r = np.take(rot, at, axis=0)
+    d = np.einsum("bij,bsj->bsi", r, rows.reshape(b, samples, 3)).reshape(-1, 3)
+    return np.repeat(np.take(origin, at, axis=0), samples, axis=0), d
 
 
 def _merge(blocks: list[_Echoes]):
@@ -574,7 +590,11 @@ def _evaluate_at(scene, view_layer, frame: int, seconds: float):
     fps = scene.render.fps / scene.render.fps_base
     f = frame + seconds * fps
     whole = int(np.floor(f))
-    scene.frame_set(whole, subframe=float(f - whole))
+    sub = float(f - whole)
+    # already there (the sweep's start is the frame itself): no evaluation again, whose
+    # worker threads would then still be spinning beside the trace
+    if (scene.frame_current, scene.frame_subframe) != (whole, sub):
+        scene.frame_set(whole, subframe=sub)
     return session.evaluated(scene, view_layer)
 
 
@@ -585,14 +605,6 @@ def _session(dg, settings: SensorSettings):
         return session.get(dg, strict=False, attributes=("material",) if settings.materials else ())
     except (session.NoGeometry, session.InvalidGeometry):
         return None
-
-
-def _sub_rays(rot, origin, rows, samples):
-    """(origins, directions) world of beams fired from poses (``rot`` (B, 3, 3), ``origin``
-    (B, 3)): each beam's ``samples`` consecutive sensor-frame sub-ray directions of ``rows``
-    (B * samples, 3)."""
-    d = np.einsum("bij,bsj->bsi", rot, rows.reshape(len(rot), samples, 3)).reshape(-1, 3)
-    return (origin if samples == 1 else np.repeat(origin, samples, axis=0)), d
 
 
 def _along(origins, directions, rows, dist, one: bool) -> np.ndarray:
@@ -711,13 +723,14 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
         for k, (members, _at) in enumerate(plan):
             slot[members] = k
         if not one_pose:
-            rot, org = _beam_poses(pose_times, poses, firing)
-            world_o, world_d = _sub_rays(rot, org, sub, samples)
+            rot, org, at_ = _beam_poses(pose_times, poses, firing)
+            world_o, world_d = _sub_rays(rot, org, at_, sub, samples)
             if beam_rot is not None:
-                beam_rot = rot
+                beam_rot = np.take(rot, at_, axis=0)
         swept = session.swept(rigid[0], rigid[0].layout, instants, rigid[1])
         echoes.append(_cast_echoes(dg, np.arange(n_beams * samples), world_o, world_d, settings, used,
                                    n_beams * samples, swept, slot=np.repeat(slot, samples)))
+        rigid[0].adopt(swept)
         used = echoes[-1].structure
     for members, at in plan if instants is None else ():
         dgb = dg
@@ -734,14 +747,14 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
             o, d = world_o, (world_d if whole else world_d[ids])
         else:
             # every beam from the sensor's pose at its own firing time (motion.interpolate_poses)
-            rot, org = _beam_poses(pose_times, poses, firing, None if whole else members)
-            o, d = _sub_rays(rot, org, sub if whole else sub[ids], samples)
+            rot, org, at_ = _beam_poses(pose_times, poses, firing, None if whole else members)
+            o, d = _sub_rays(rot, org, at_, sub if whole else sub[ids], samples)
             if whole:
                 world_o, world_d = o, d
             else:
                 world_o[ids], world_d[ids] = o, d
             if beam_rot is not None:
-                beam_rot[members] = rot
+                beam_rot[members] = np.take(rot, at_, axis=0)
         e = _cast_echoes(dgb, ids, o, d, settings, used, n_beams * samples)
         used = e.structure
         echoes.append(e)

@@ -505,6 +505,13 @@ class Session:
         self.plan, self.chosen, self.calibration, self.kinds = old.plan, old.chosen, old.calibration, old.kinds
         self.grid_time, self.grid_rays = old.grid_time, old.grid_rays
 
+    def adopt(self, other: "Session"):
+        """Take the structure ``other`` chose for this scene when this session has not chosen
+        (a sweep's session, not stored, hands its choice to the stored one the next frame
+        inherits from, instead of every frame deciding again)."""
+        if self.chosen is None and other.chosen is not None:
+            self.chosen, self.calibration, self.kinds = other.chosen, other.calibration, other.kinds
+
     @property
     def triangle_normals(self) -> np.ndarray:
         """(T, 3) float32 unit normals, cross(v1 - v0, v2 - v0) / |...| in float64 (the

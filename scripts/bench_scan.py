@@ -23,7 +23,8 @@ vehicle drives through a static scene.
 up to two returns; the ``scene.ray_cast`` loop then casts the same sub-rays.
 ``--motion SWEEP``: each block of firings against the scene at its own time; with
 ``--compare-frame`` the same frames are also scanned with FRAME motion in the same run, in a
-pass of their own after the first, and the table gains the SWEEP / FRAME ratio.
+pass of their own after the first, and the table gains the SWEEP / FRAME ratio; ``--passes K``
+repeats both passes K times in turn and takes the ratio's median over every pair.
 Prints a table (medians over frames; frames per second = 1 / median); fails on nothing.
 """
 
@@ -112,6 +113,8 @@ def main(argv=None):
     ap.add_argument("--beam-divergence", type=float, default=0.0, help="milliradians")
     ap.add_argument("--motion", default="FRAME", choices=("FRAME", "SWEEP"))
     ap.add_argument("--compare-frame", action="store_true", help="also scan every frame with FRAME motion")
+    ap.add_argument("--passes", type=int, default=1,
+                    help="with --compare-frame: rounds of a pass of each motion (the ratio's median is over all)")
     ap.add_argument("--scan-frames", type=int, default=None,
                     help="scan only the first N frames of the animation (default: every frame)")
     args = ap.parse_args(argv)
@@ -155,14 +158,29 @@ def main(argv=None):
         t_write.append(time.perf_counter() - ta)
         points.append(len(r))
         structures.add(r.structure)
-    if args.compare_frame:  # the same frames with FRAME motion, in a pass of their own: interleaved,
-        s.motion = "FRAME"  # one scan would find the other's extraction of the same instant
+    ratios, round_medians = [], []
+    for k in range(args.passes if args.compare_frame else 0):
+        # the same frames with FRAME motion, in a pass of their own (interleaved, one scan would
+        # find the other's extraction of the same instant); further rounds repeat both passes,
+        # so a drift of the machine's speed shows as the spread between rounds
+        t_sweep = t_scan if k == 0 else []
+        for f in range(1, scanned + 1) if k else ():
+            scene.frame_set(f)
+            ta = time.perf_counter()
+            structure = pkg.api.scan(sensor, structure=structure).structure
+            t_sweep.append(time.perf_counter() - ta)
+        s.motion = "FRAME"
+        t_round = []
         for f in range(1, scanned + 1):
             scene.frame_set(f)
             ta = time.perf_counter()
             frame_structure = pkg.api.scan(sensor, structure=frame_structure).structure  # its own plan, then kept
-            t_frame.append(time.perf_counter() - ta)
+            t_round.append(time.perf_counter() - ta)
         s.motion = args.motion
+        t_frame += t_round
+        pairs = [a / b for a, b in zip(t_sweep, t_round)]
+        ratios += pairs
+        round_medians.append(statistics.median(pairs))
     size = sum(p.stat().st_size for p in out.iterdir())
     for p in out.iterdir():
         p.unlink()
@@ -197,11 +215,11 @@ def main(argv=None):
     print(f"| scene.ray_cast loop ({args.loop_frames} frames timed) | {loop_s:.3f} | {1 / loop_s:.3f} | 1.0 |")
     if t_frame:
         fr = med(t_frame)
-        ratios = [a / b for a, b in zip(t_scan, t_frame)]
         print(f"| api.scan, FRAME motion (same frames) | {fr:.3f} | {1 / fr:.2f} | {loop_s / fr:.1f} |")
         print()
-        print(f"{args.motion} / FRAME: median of per-frame ratios {med(ratios):.2f} "
-              f"(min {min(ratios):.2f}, max {max(ratios):.2f}); sweep blocks per frame median {med(blocks):.0f}")
+        print(f"{args.motion} / FRAME: median of per-frame ratios {med(ratios):.2f} over {len(ratios)} pairs "
+              f"(min {min(ratios):.2f}, max {max(ratios):.2f}; each round's median "
+              f"{', '.join(f'{x:.2f}' for x in round_medians)}); sweep blocks per frame median {med(blocks):.0f}")
     print()
     print(f"scene.frame_set (Blender's evaluation, excluded above): median {set_s * 1e3:.1f} ms per frame")
     print(f"api.scan first frame {t_scan[0]:.3f} s, min {min(t_scan):.3f} s, max {max(t_scan):.3f} s")

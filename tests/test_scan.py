@@ -413,3 +413,24 @@ def test_cli_scan_bad_motion_returns_and_beam_options_exit_2_naming_the_option(f
     lines = [x for x in err.strip().splitlines() if x]
     assert code == 2 and len(lines) == 1 and words in lines[0], (code, lines)
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+@pytest.mark.parametrize("samples", [1, 3])
+def test_sub_rays_of_channels_firing_together_equal_each_beam_rotated_alone(addon, samples):
+    """A spinning sensor's beams grouped by firing time take one product per time
+    (``scan._sub_rays``): the same origins and directions, to rounding, as every beam
+    rotated by its own pose (the path a pattern in any order takes)."""
+    scan = addon.operators.scan
+    rng = np.random.default_rng(4)
+    t, group = 5, 4
+    q, _ = np.linalg.qr(rng.normal(size=(t, 3, 3)))
+    origin = rng.normal(size=(t, 3))
+    at = np.repeat(np.arange(t), group)
+    rows = rng.normal(size=(t * group * samples, 3))
+    o, d = scan._sub_rays(q, origin, at, rows, samples)
+    want_d = np.einsum("bij,bsj->bsi", q[at], rows.reshape(-1, samples, 3)).reshape(-1, 3)
+    assert np.allclose(d, want_d, rtol=0, atol=1e-14) and np.array_equal(o, np.repeat(origin[at], samples, axis=0))
+    order = rng.permutation(len(at))  # the same beams out of time order: the per-beam path
+    o2, d2 = scan._sub_rays(q, origin, at[order], rows.reshape(-1, samples, 3)[order].reshape(-1, 3), samples)
+    assert np.array_equal(d2, want_d.reshape(-1, samples, 3)[order].reshape(-1, 3))
+    assert np.array_equal(o2, o.reshape(-1, samples, 3)[order].reshape(-1, 3))
