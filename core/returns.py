@@ -263,13 +263,17 @@ def measure_returns(ray, range_, cos_incidence, reflectivity, factor, *, beams, 
 
     # -- echo power; echoes outside the range window are not detected
     inside = (r >= lo) & (r <= hi)
-    idx = np.flatnonzero(inside)
-    r = r[idx]
+    every = bool(inside.all())  # the common case: no copies of the echoes
+    idx = np.arange(e) if every else np.flatnonzero(inside)
+    sel = slice(None) if every else idx
+    r = r[sel]
     alpha = 3.912 / returns.visibility  # Koschmieder; 0 for clear air (inf)
     with np.errstate(divide="ignore"):
         falloff = np.minimum(1.0, (returns.reference_range / r) ** 2)  # r = 0: 1
-    power = w[ray[idx] % samples] * rho[idx] * cos[idx] * falloff * share[idx] * np.exp(-2.0 * alpha * r)
-    beam = ray[idx] // samples
+    power = (w[0] if samples == 1 else w[ray[sel] % samples]) * rho[sel] * cos[sel] * falloff * share[sel]
+    if alpha > 0:  # clear air attenuates nothing: exp(0) = 1
+        power = power * np.exp(-2.0 * alpha * r)
+    beam = ray[sel] // samples
     echo = idx
     tie = idx  # representative ties go to the lowest echo index, false returns after all
 

@@ -392,12 +392,18 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
             if tables is None:
                 tables = s.per_triangle() + ((s.material_tables()[1],) if materials else ())
             u[a:b], v[a:b] = h.u, h.v
-            np.take(tables[0], k, out=obj[a:b])
-            np.take(tables[1], k, out=ins[a:b])
-            np.take(tables[2], k, out=poly[a:b])
-            np.take(tables[3], k, axis=0, out=normals[a:b])
-            if materials:
-                np.take(tables[4], k, out=mat_index[a:b])
+            outs = (obj, ins, poly, normals) + ((mat_index,) if materials else ())
+            got = np.flatnonzero(k >= 0)
+            if got.size * 2 < len(k):
+                # most rays miss (a sensor's sky): the misses take the tables' miss row as one
+                # fill, and only the hits gather from the large per-triangle tables
+                kg, at = k[got], got + a
+                for table, out in zip(tables, outs):
+                    out[a:b] = table[-1]
+                    out[at] = np.take(table, kg, axis=0)
+            else:
+                for table, out in zip(tables, outs):
+                    np.take(table, k, axis=0, out=out[a:b])
         if points_:
             tt = np.where(k >= 0, h.t, np.float32(np.nan)).astype(np.float64)
             np.multiply(tt[:, None], rays[1].astype(np.float64), out=points[a:b])  # one dtype: a mixed one loops slower

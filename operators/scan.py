@@ -438,9 +438,10 @@ def _cast_echoes(dg, ray_ids, origins, dirs, settings: SensorSettings, structure
         if not len(h):
             break
         t = r.t[h].astype(np.float64)
-        n = r.normals[h]
-        # over every ray in float32 (NaN on a miss), then the hits': one dtype, no (M, 3) gather of d
-        cos = np.abs(np.einsum("ij,ij->i", r.normals, d.astype(np.float32)))[h].astype(np.float64)
+        n = np.take(r.normals, h, axis=0)  # np.take of rows: faster than a fancy index
+        # the hits' sub-ray directions in float32, one dtype with the normals
+        dh = d[0:1].astype(np.float32) if len(d) == 1 else np.take(d, h, axis=0).astype(np.float32)
+        cos = np.abs(np.einsum("ij,ij->i", n, np.broadcast_to(dh, n.shape))).astype(np.float64)
         if op is not None:
             refl, trans, mirror = op.per_hit(r.material_index[h], r.object_index[h])
             refl, trans = np.asarray(refl, np.float64), np.asarray(trans, np.float64)
@@ -771,7 +772,11 @@ def scan_frame(ob, scene, *, view_layer=None, depsgraph=None, space="WORLD", set
     else:
         sub_of = np.where(real, merged.ray[er] if len(merged.ray) else 0, beam * samples)
     points = _along(world_o, world_d, sub_of, meas.range, one_pose)
-    if every:
+    if every and len(er) == len(merged.ray) and np.array_equal(er, np.arange(len(er))):
+        # every echo reported once, in order: the echoes' own arrays
+        normals, obj, inst = merged.normals, merged.object_index, merged.instance_index
+        mat, cos = merged.material_index, merged.cos.astype(np.float32)
+    elif every:
         normals, obj, inst = merged.normals[er], merged.object_index[er], merged.instance_index[er]
         mat, cos = merged.material_index[er], merged.cos[er].astype(np.float32)
     else:

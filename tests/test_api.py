@@ -57,6 +57,32 @@ def test_cast_equals_brute_force_on_the_extracted_mesh(fresh, addon, expected):
     assert list(r.object_names) == sorted(set(r.object_names), key=list(r.object_names).index)
 
 
+@pytest.mark.parametrize("sky", [0.2, 0.8])
+def test_every_field_is_the_same_whether_most_rays_miss_or_hit(fresh, addon, sky):
+    """A cast where most rays miss gathers the per-triangle fields for its hits only: every
+    field of every ray equals the same rays cast where most hit (the rays padded with hits),
+    with the miss values (-1, NaN) on the misses."""
+    simple_scene()
+    core = addon.core
+    from hybrid_raycast.operators.analyze import extract
+
+    mesh, _ = extract(bpy.context.evaluated_depsgraph_get())
+    o, d = core.uniform_rays(mesh, 2000, seed=3)
+    ref = core.build(mesh, "brute").trace(o, d)
+    rng = np.random.default_rng(0)
+    hits, misses = np.flatnonzero(ref.hit), np.flatnonzero(~ref.hit)
+    n_miss = int(sky * 1000)
+    pick = np.concatenate([rng.choice(hits, 1000 - n_miss), rng.choice(misses, n_miss)])
+    r = addon.api.cast(o[pick], d[pick], structure="bvh", materials=True)
+    dense = addon.api.cast(o[pick[r.hit]], d[pick[r.hit]], structure="bvh", materials=True)
+    assert (~r.hit).mean() == pytest.approx(sky, abs=0.01)
+    for f in ("t", "triangle", "u", "v", "object_index", "instance_index", "polygon_index", "normals", "material_index"):
+        got = getattr(r, f)
+        assert np.array_equal(got[r.hit], getattr(dense, f)), f
+    assert (r.object_index[~r.hit] == -1).all() and (r.polygon_index[~r.hit] == -1).all()
+    assert np.isnan(r.normals[~r.hit]).all() and (r.material_index[~r.hit] == -1).all()
+
+
 def test_cast_agrees_with_blenders_scene_ray_cast(fresh, addon):
     from mathutils import Vector
 
