@@ -852,21 +852,22 @@ class Split:
         hi = np.broadcast_to(np.asarray(tmax, np.float64), (m,)).copy()
         for si, (acc, glob, inst, local) in enumerate(self.soups):
             h = acc.trace(o32, d32, lo, np.maximum(hi, lo))
-            got = h.triangle >= 0
-            k = h.triangle[got]
+            rows = np.flatnonzero(h.triangle >= 0)
+            k = h.triangle[rows]
             g = glob[k]
-            cur_t, cur_g = out.t[got], out.triangle[got]
-            take_k = (cur_g < 0) | (h.t[got] < cur_t) | ((h.t[got] == cur_t) & (g < cur_g))
-            rows = np.flatnonzero(got)[take_k]
-            k = k[take_k]
-            out.t[rows] = h.t[rows]
-            out.triangle[rows] = glob[k]
+            if si:  # against what the soups before found (the first finds against nothing)
+                cur_t, cur_g, t = out.t[rows], out.triangle[rows], h.t[rows]
+                take = (cur_g < 0) | (t < cur_t) | ((t == cur_t) & (g < cur_g))
+                rows, k, g = rows[take], k[take], g[take]
+            t = h.t[rows]
+            out.t[rows] = t
+            out.triangle[rows] = g
             out.u[rows], out.v[rows] = h.u[rows], h.v[rows]
             out.instance[rows] = inst[k]
             out.local_triangle[rows] = local[k]
             out.soup[rows] = si
             out.soup_triangle[rows] = k
-            hi[rows] = np.minimum(hi[rows], out.t[rows])
+            hi[rows] = np.minimum(hi[rows], t)
         if self.moving is None or m == 0:
             return out
         hm = self.moving.trace(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo, np.maximum(hi, lo),

@@ -470,7 +470,7 @@ class Session:
                 if getattr(acc, "_kept", False):
                     if getattr(acc, "_normals", None) is None:
                         acc._normals = unit_normals(acc.mesh.tri_vertices)
-                    n[r] = acc._normals[h.soup_triangle[r]]
+                    n[r] = np.take(acc._normals, h.soup_triangle[r], axis=0)  # rows: faster than indexing
                 else:
                     n[r] = unit_normals(acc.mesh.tri_vertices[h.soup_triangle[r]])
         rest = ~flat
@@ -487,11 +487,11 @@ class Session:
     def decode_materials(self, h) -> np.ndarray:
         """(M,) int32 material index (into ``material_tables()[0]``) of two-level hits."""
         _, pool, base = self.layout.material_pool()
-        got = h.instance >= 0
-        i = np.where(got, h.instance, 0)
-        if not len(pool) or not len(base):
-            return np.full(len(got), -1, np.int32)
-        return np.where(got, pool[base[i] + np.where(got, h.local_triangle, 0)], -1).astype(np.int32)
+        out = np.full(len(h.instance), -1, np.int32)
+        got = np.flatnonzero(h.instance >= 0)
+        if len(pool) and len(base) and got.size:
+            out[got] = pool[base[h.instance[got]] + h.local_triangle[got]]
+        return out
 
     def inherit(self, old: "Session"):
         """Carry the decision of the same scene's previous session (its plan, the structure
