@@ -257,6 +257,30 @@ def test_a_deforming_mesh_is_rebuilt_flat_beside_a_moved_one_on_two_levels(fresh
     assert np.array_equal(r.hit, ref.hit) and np.allclose(r.t[r.hit], ref.t[ref.hit], rtol=1e-5, atol=1e-5)
 
 
+def test_the_displacement_between_two_instants_is_the_largest_vertex_move(fresh, addon):
+    """``Layout.displacement``: the same mesh moved (one product by M1 - M0) and a mesh
+    that deforms (each end placed) both give the largest move of any vertex, as the world
+    vertices of two flat extractions give it."""
+    scene, wave, mover, empty = _scene()
+    ext = addon.operators.extract
+    cache = {}
+
+    def state():
+        dg = bpy.context.evaluated_depsgraph_get()
+        return ext.scene_layout(dg, cache=cache)
+
+    a = state()
+    w0 = a.flat().vertices.astype(np.float64)
+    mover.location.x += 0.7
+    mover.rotation_euler.z += 0.3
+    scene.frame_set(6)  # and the wave deforms
+    b = state()
+    w1 = b.flat().vertices.astype(np.float64)
+    want = float(np.sqrt(((w1 - w0) ** 2).sum(axis=1).max()))
+    assert a.displacement(b) == pytest.approx(want, rel=1e-6, abs=1e-6)
+    assert a.displacement(a) == 0.0
+
+
 def test_nan_vertices_in_one_object_leave_out_its_bad_triangles_with_one_warning(fresh, addon):
     from blender_scenes import make_nan
 
