@@ -399,7 +399,11 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
                 # fill, and only the hits gather from the large per-triangle tables
                 kg, at = k[got], got + a
                 for table, out in zip(tables, outs):
-                    out[a:b] = table[-1]
+                    if out.ndim == 2:  # by columns: a broadcast of one row of 3 fills several times slower
+                        for c in range(out.shape[1]):
+                            out[a:b, c] = table[-1, c]
+                    else:
+                        out[a:b] = table[-1]
                     out[at] = np.take(table, kg, axis=0)
             else:
                 for table, out in zip(tables, outs):
