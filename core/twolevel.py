@@ -118,18 +118,22 @@ class _Best:
         out.triangle[np.flatnonzero(hit) if rows is None else rows[hit]] = self.g[hit]
         return out
 
-    def fold(self, ray, inst, h: Hits, tri_base):
+    def fold(self, ray, inst, h: Hits, tri_base, unique: bool = False):
         """Fold in one bottom call's hits for pairs (ray, inst): the nearest per ray, an
-        exact tie in t to the lowest global triangle (a ray may come several times)."""
+        exact tie in t to the lowest global triangle (a ray may come several times, unless
+        ``unique``: one instance's call, each ray once)."""
         k = np.flatnonzero(h.triangle >= 0)
         if k.size == 0:
             return
         ray, inst, t, loc = ray[k], inst[k], h.t[k], h.triangle[k].astype(np.int64)
         g = tri_base[inst] + loc
-        order = np.lexsort((g, t, ray))
-        first = np.ones(order.size, bool)
-        first[1:] = ray[order[1:]] != ray[order[:-1]]
-        w = order[first]  # each ray's nearest candidate of this call
+        if unique:
+            w = np.arange(k.size)  # each ray's only candidate of this call
+        else:
+            order = np.lexsort((g, t, ray))
+            first = np.ones(order.size, bool)
+            first[1:] = ray[order[1:]] != ray[order[:-1]]
+            w = order[first]  # each ray's nearest candidate of this call
         r = ray[w]
         better = (t[w] < self.t[r]) | ((t[w] == self.t[r]) & (g[w] < self.g[r]))
         w, r = w[better], r[better]
@@ -401,7 +405,7 @@ class TwoLevel:
             else:
                 tmax_pair = np.minimum(rays.tmax[ray], best.t[ray])
                 h = self._call_bottom(bottom, ray, inst, rays, o64, d64, tmax_pair, False, single=True)
-                best.fold(ray, inst, h, self.tri_base)
+                best.fold(ray, inst, h, self.tri_base, unique=True)
 
         _nearest_first(act, near, touch, rid, best, occluded, call)
 
@@ -800,7 +804,7 @@ class Swept:
                 else:
                     tmax_pair = np.minimum(rays.tmax[ray], best.t[ray])
                     h = TwoLevel._call_bottom_ok(bottom, o32, d32, rays.tmin[ray], tmax_pair, False)
-                    best.fold(ray, np.full(len(ray), i, np.int32), h, two.tri_base)
+                    best.fold(ray, np.full(len(ray), i, np.int32), h, two.tri_base, unique=True)
 
             _nearest_first(act, near, touch, rid, best, occluded, call)
 
