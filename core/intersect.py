@@ -120,8 +120,9 @@ def prepare_rays(origins, directions, tmin=0.0, tmax=np.inf, *, shear: bool = Tr
             if not np.isfinite(a).all():
                 w = np.flatnonzero(~np.isfinite(a).all(axis=1))
                 raise ValueError(f"{w.size} of {m} rays have NaN or infinite {name} (or overflow float32), first at ray {w[:5].tolist()}")
-    if not d32.all():  # some component is zero: is a whole direction zero?
-        w = np.flatnonzero(~(d32 != 0).any(axis=1))
+    if not d32.all():  # some component is zero: is a whole direction zero? (by columns: a
+        # row-wise reduce over 3 columns costs several times more)
+        w = np.flatnonzero((d32[:, 0] == 0) & (d32[:, 1] == 0) & (d32[:, 2] == 0))
         if w.size:
             raise ValueError(f"{w.size} of {m} rays have a zero-length direction, first at ray {w[:5].tolist()}")
     lo = _per_ray(tmin, m, "tmin")
