@@ -855,7 +855,10 @@ class Split:
         lo = np.broadcast_to(np.asarray(tmin, np.float64), (m,))
         hi = np.broadcast_to(np.asarray(tmax, np.float64), (m,)).copy()
         for si, (acc, glob, inst, local) in enumerate(self.soups):
-            h = acc.trace(o32, d32, lo, np.maximum(hi, lo))
+            if si == 0 and np.ndim(tmin) == 0 and np.ndim(tmax) == 0 and tmin <= tmax:
+                h = acc.trace(o32, d32, tmin, tmax)  # one interval for all: no per-ray arrays
+            else:
+                h = acc.trace(o32, d32, lo, np.maximum(hi, lo))
             rows = np.flatnonzero(h.triangle >= 0)
             k = h.triangle[rows]
             g = glob[k]
