@@ -540,13 +540,22 @@ def near_rays(rays, centres, radii, same_origin: bool) -> np.ndarray:
                 w = [c[k] - o_cols[k] for k in range(3)]
                 ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
                 wd = w[0] * d_cols[0] + w[1] * d_cols[1] + w[2] * d_cols[2]
-            tp = wd / dd                   # where the line comes nearest the centre
-            off2 = ww - tp * tp * dd       # its squared distance from it there
             re = grown[a] + eps * np.sqrt(ww)
-            h = np.sqrt(np.maximum(re * re - off2, F32(0)) / dd)  # half the chord, in t
+            # the line's squared distance from the centre, times dd: most rays pass wide of
+            # every ball, and only the rest take the interval's test (NaN keeps the ray)
+            c = np.flatnonzero(~(ww * dd - wd * wd > re * re * dd))
+            if not c.size:
+                continue
+            ddc, wdc = dd[c], wd[c]
+            ww_c, re_c = (ww, re) if np.ndim(ww) == 0 else (ww[c], re[c])
+            tp = wdc / ddc                 # where the line comes nearest the centre
+            off2 = ww_c - tp * tp * ddc    # its squared distance from it there
+            h = np.sqrt(np.maximum(re_c * re_c - off2, F32(0)) / ddc)  # half the chord, in t
             slack = eps * (np.abs(tp) + h)
-            out = (off2 > re * re) | (tp + h < rays.tmin - slack) | (tp - h > rays.tmax + slack)
-            keep |= ~out
+            tmin = rays.tmin if np.ndim(rays.tmin) == 0 else rays.tmin[c]
+            tmax = rays.tmax if np.ndim(rays.tmax) == 0 else rays.tmax[c]
+            out = (off2 > re_c * re_c) | (tp + h < tmin - slack) | (tp - h > tmax + slack)
+            keep[c[~out]] = True
     return np.flatnonzero(keep)
 
 
