@@ -242,11 +242,7 @@ class TwoLevel:
         if active.size:
             blo = np.array([bt.mesh.bounds()[0] for bt in self.bottoms], np.float64)
             bhi = np.array([bt.mesh.bounds()[1] for bt in self.bottoms], np.float64)
-            olo, ohi = blo[self.instance_bottom[active]], bhi[self.instance_bottom[active]]
-            bits = (np.arange(8)[:, None] >> np.arange(3)) & 1  # (8, 3) corner selectors
-            corners = np.where(bits[None], ohi[:, None, :], olo[:, None, :])  # (A, 8, 3)
-            world = np.einsum("aij,akj->aki", a[active], corners) + b[active][:, None, :]
-            wlo, whi = world.min(axis=1), world.max(axis=1)
+            wlo, whi = placed_boxes(blo[self.instance_bottom[active]], bhi[self.instance_bottom[active]], m[active])
             pad = BOX_PAD * (np.maximum(np.abs(wlo), np.abs(whi)).max(axis=1) + (whi - wlo).max(axis=1))
             lo[active] = wlo - pad[:, None]
             hi[active] = whi + pad[:, None]
@@ -491,6 +487,16 @@ def _usable(o32, d32) -> np.ndarray:
     return (fin[:, 0] & fin[:, 1] & fin[:, 2]) & ((d32[:, 0] != 0) | (d32[:, 1] != 0) | (d32[:, 2] != 0))
 
 
+def placed_boxes(lo, hi, matrices) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (A, 3) float64 world boxes of object boxes (lo, hi) (A, 3) placed by
+    ``matrices`` (A, 4, 4): their 8 corners through each matrix, in float64."""
+    bits = (np.arange(8)[:, None] >> np.arange(3)) & 1  # (8, 3) corner selectors
+    corners = np.where(bits[None], np.asarray(hi, np.float64)[:, None, :], np.asarray(lo, np.float64)[:, None, :])
+    m = np.asarray(matrices, np.float64)
+    world = np.einsum("aij,akj->aki", m[:, :3, :3], corners) + m[:, None, :3, 3]
+    return world.min(axis=1), world.max(axis=1)
+
+
 def balls(lo, hi) -> tuple[np.ndarray, np.ndarray]:
     """(centres (A, 3), radii (A,)) float64 of the balls around boxes (lo, hi) (A, 3)."""
     lo, hi = np.asarray(lo, np.float64).reshape(-1, 3), np.asarray(hi, np.float64).reshape(-1, 3)
@@ -536,26 +542,24 @@ def near_rays(rays, centres, radii, same_origin: bool) -> np.ndarray:
             if same_origin:
                 ww, wd = ww_all[a], wd_all[a]
             else:
-                c = centres[a].astype(F32)
-                w = [c[k] - o_cols[k] for k in range(3)]
+                ca = centres[a].astype(F32)
+                w = [ca[k] - o_cols[k] for k in range(3)]
                 ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
                 wd = w[0] * d_cols[0] + w[1] * d_cols[1] + w[2] * d_cols[2]
             re = grown[a] + eps * np.sqrt(ww)
             # the line's squared distance from the centre, times dd: most rays pass wide of
             # every ball, and only the rest take the interval's test (NaN keeps the ray)
-            c = np.flatnonzero(~(ww * dd - wd * wd > re * re * dd))
-            if not c.size:
+            near = np.flatnonzero(~(ww * dd - wd * wd > re * re * dd))
+            if not near.size:
                 continue
-            ddc, wdc = dd[c], wd[c]
-            ww_c, re_c = (ww, re) if np.ndim(ww) == 0 else (ww[c], re[c])
-            tp = wdc / ddc                 # where the line comes nearest the centre
-            off2 = ww_c - tp * tp * ddc    # its squared distance from it there
-            h = np.sqrt(np.maximum(re_c * re_c - off2, F32(0)) / ddc)  # half the chord, in t
+            ddn, wdn = dd[near], wd[near]
+            ww_n, re_n = (ww, re) if np.ndim(ww) == 0 else (ww[near], re[near])  # scalars from one origin
+            tp = wdn / ddn                 # where the line comes nearest the centre
+            off2 = ww_n - tp * tp * ddn    # its squared distance from it there
+            h = np.sqrt(np.maximum(re_n * re_n - off2, F32(0)) / ddn)  # half the chord, in t
             slack = eps * (np.abs(tp) + h)
-            tmin = rays.tmin if np.ndim(rays.tmin) == 0 else rays.tmin[c]
-            tmax = rays.tmax if np.ndim(rays.tmax) == 0 else rays.tmax[c]
-            out = (off2 > re_c * re_c) | (tp + h < tmin - slack) | (tp - h > tmax + slack)
-            keep[c[~out]] = True
+            out = (off2 > re_n * re_n) | (tp + h < rays.tmin[near] - slack) | (tp - h > rays.tmax[near] + slack)
+            keep[near[~out]] = True
     return np.flatnonzero(keep)
 
 
@@ -870,12 +874,11 @@ class Split:
                 h = acc.trace(o32, d32, lo, np.maximum(hi, lo))
             rows = np.flatnonzero(h.triangle >= 0)
             k = h.triangle[rows]
-            g = glob[k]
+            g, t = glob[k], h.t[rows]
             if si:  # against what the soups before found (the first finds against nothing)
-                cur_t, cur_g, t = out.t[rows], out.triangle[rows], h.t[rows]
+                cur_t, cur_g = out.t[rows], out.triangle[rows]
                 take = (cur_g < 0) | (t < cur_t) | ((t == cur_t) & (g < cur_g))
-                rows, k, g = rows[take], k[take], g[take]
-            t = h.t[rows]
+                rows, k, g, t = rows[take], k[take], g[take], t[take]
             out.t[rows] = t
             out.triangle[rows] = g
             out.u[rows], out.v[rows] = h.u[rows], h.v[rows]

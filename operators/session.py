@@ -343,21 +343,15 @@ class Session:
         o_s = np.broadcast_to(o[:1] if one else np.broadcast_to(o, (n, 3))[pick], d_s.shape)
         sample = core.prepare_rays(o_s, d_s, tmin if tmin.ndim == 0 else tmin[pick],
                                    tmax if tmax.ndim == 0 else tmax[pick], shear=False)
-        # each moved placement's world box: the 8 corners of its mesh's object box through its matrix
-        bits = (np.arange(8)[:, None] >> np.arange(3)) & 1
-        lo, hi = [], []
-        for i in moving.tolist():
-            g = lay.groups[lay.placement_group[i]]
-            if len(g.tris):
-                # a kept mesh read's box is computed once (``TriangleMesh.bounds``)
-                blo, bhi = (g.read.local_mesh() if g.read is not None else core.TriangleMesh(g.co, g.tris)).bounds()
-                corners = np.where(bits, bhi, blo).astype(np.float64)
-                w = corners @ lay.matrices[i, :3, :3].T + lay.matrices[i, :3, 3]
-                lo.append(w.min(axis=0))
-                hi.append(w.max(axis=0))
-        if not lo:
+        # each moved placement's world box: its mesh's object box (a kept mesh read's is computed
+        # once, ``TriangleMesh.bounds``) through its matrix
+        placed = [i for i in moving.tolist() if len(lay.groups[lay.placement_group[i]].tris)]
+        if not placed:
             return 0.0
-        near = core.twolevel.near_rays(sample, *core.twolevel.balls(np.array(lo), np.array(hi)), one)
+        groups = [lay.groups[lay.placement_group[i]] for i in placed]
+        boxes = [(g.read.local_mesh() if g.read is not None else core.TriangleMesh(g.co, g.tris)).bounds() for g in groups]
+        lo, hi = core.twolevel.placed_boxes([b[0] for b in boxes], [b[1] for b in boxes], lay.matrices[placed])
+        near = core.twolevel.near_rays(sample, *core.twolevel.balls(lo, hi), one)
         return near.size * rays / len(sample)
 
     @property
