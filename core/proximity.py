@@ -445,8 +445,8 @@ def _measure(index: TreeIndex, p, owner, leaf, best):
     own, tri = index.leaf_pairs(owner, leaf)
     c = np.take(index.corner_rows, tri, axis=0)
     q = np.take(p, own, axis=0)
-    d2, u, v = closest_on_columns(*([x[:, k] for k in ks] for x, ks in ((q, range(3)), (c, range(3)),
-                                                                         (c, range(3, 6)), (c, range(6, 9)))))
+    col = [c[:, k] for k in range(9)]
+    d2, u, v = closest_on_columns([q[:, k] for k in range(3)], col[0:3], col[3:6], col[6:9])
     _reduce_pairs(own, tri, d2, u, v, best)
 
 
@@ -461,10 +461,7 @@ def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
     if m == 0 or len(index) == 0:
         return _nearest(p, best, index.tv64)
     tv = index.tv64
-
-    def measure(owner, leaf):  # each (point, leaf) comes once: the path's, or under one sibling
-        _measure(index, p, owner, leaf, best)
-
+    # each (point, leaf) is measured once: the path's leaf, or a leaf under one sibling of it
     p32 = (p - index.centre).astype(np.float32)
     slack = _rounding(p32)
     # a bound for every point: down the nearest child box to a leaf, keeping each level's
@@ -478,7 +475,7 @@ def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
         path.append((rows, node, d2, j))
         child = index.children[node, j]
         leaf = child < 0
-        measure(rows[leaf], ~child[leaf])
+        _measure(index, p, rows[leaf], ~child[leaf], best)
         rows, node = rows[~leaf], child[~leaf]
     # every box off a point's path lies under a sibling of a path node: the siblings its
     # bound does not rule out are where the search goes on (the path itself is done)
@@ -489,7 +486,7 @@ def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
         r, jj = np.nonzero(near)
         own, child = rows[r], index.children[node[r], jj]
         leaf = child < 0
-        measure(own[leaf], ~child[leaf])
+        _measure(index, p, own[leaf], ~child[leaf], best)
         if (~leaf).any():
             start.append((own[~leaf], child[~leaf]))
     # branch and bound, depth first over bounded pieces of (point, node) pairs
@@ -497,7 +494,7 @@ def _closest_chunk(index: TreeIndex, p, md) -> Nearest:
         r, j = np.nonzero(_open(_box_d2(p32[rows], index.boxes32, node), best[0][rows], slack[rows]))
         own, child = rows[r], index.children[node[r], j]
         leaf = child < 0
-        measure(own[leaf], ~child[leaf])
+        _measure(index, p, own[leaf], ~child[leaf], best)
         if (~leaf).any():
             pieces.append((own[~leaf], child[~leaf]))
     return _nearest(p, best, tv)

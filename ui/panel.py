@@ -33,10 +33,15 @@ def _secs(x: float) -> str:
     return f"{x * 1e9:.1f} ns"
 
 
+def _kind_name(kind: str) -> str:
+    """'BVH', 'Embree' for the settings' enum names."""
+    return kind if kind == "BVH" else kind.capitalize()
+
+
 def break_even_text(props) -> tuple[str, str]:
     """(point, interval) as the panel shows them."""
     if not props.grid_built:  # settled by the calibration alone: no grid to keep
-        kind = props.break_even_kind.capitalize() if props.break_even_kind != "BVH" else "BVH"
+        kind = _kind_name(props.break_even_kind)
         if props.break_even_ceiling <= 0:
             return f"none: {kind} from the first ray (no grid built)", "the calibration's"
         return (f"at most {_rays(props.break_even_ceiling)} rays (no grid built)",
@@ -154,7 +159,7 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
             return
         col = layout.column(align=True)
         if not props.grid_built:
-            kind = {"BVH": "the BVH", "EMBREE": "Embree"}.get(props.break_even_kind, props.break_even_kind.lower())
+            kind = ("the " if props.break_even_kind == "BVH" else "") + _kind_name(props.break_even_kind)
             col.label(text="Grid: not built")
             if props.break_even_ceiling > 0:
                 col.label(text=f"  (above {props.break_even_ceiling:,.0f} rays {kind} wins on the calibration alone)")
