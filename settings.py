@@ -56,6 +56,12 @@ DECISION_ITEMS = (
 #: idle.  Written only by ``operators/jobs.py``'s ``JobOperator``; one job runs at a time.
 RUNNING: dict = {}
 
+#: how each scene's latest call was traced after the scene changed, per part (its kind, form,
+#: triangles and the rule's choice over its life: ``Session.describe``), keyed by the scene's
+#: name; written by ``operators/session.py`` when a session builds its parts, drawn by the
+#: panel's "Structures per Part".  Empty until a changed scene has been traced.
+PARTS: dict = {}
+
 
 def _get_expected(self):
     return min(ray_budget(self.id_data, self)["rays"], RAYS_MAX)

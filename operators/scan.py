@@ -932,9 +932,12 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     finished files are appended to as they are renamed into place.  The scene returns to
     its current frame at the end, on an error and when the job is closed (Esc).
 
-    The first frame plans (``api.cast``'s 'auto'); later frames use the structure it
-    chose: a moving scene is extracted again every frame, and planning again would time
-    the grid on sample rays each frame for the same answer."""
+    The first frame plans (``api.cast``'s 'auto'); later frames inherit its decision (a
+    session of the same scene does not plan again), and after a change each part of the
+    scene picks its structure for the frames still to come (``session.expecting``): the
+    still soup and each moved mesh's bottom level for the rest of the job, a deforming mesh
+    for its one frame.  ``structures``: how the last frame was traced, per part
+    (``Session.describe``)."""
     fmt = str(fmt).lower()
     if fmt not in pointcloud.FORMATS:
         raise BadInput(f"bad arguments: format must be one of {', '.join(pointcloud.FORMATS)}, got {fmt!r}")
@@ -951,7 +954,7 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
     old = (scene.frame_current, scene.frame_subframe)
     count = end - start + 1
     rays = points = 0
-    structure = "auto"
+    structure, structures = "auto", None
     poses = []
     try:
         for i, frame in enumerate(range(start, end + 1)):
@@ -961,11 +964,13 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
             scene.frame_set(frame)
             dg = session.evaluated(scene, view_layer)
             try:
-                result = scan_frame(ob, scene, view_layer=view_layer, depsgraph=dg, space=space, settings=settings,
-                                    structure=structure)
+                with session.expecting(count - i):
+                    result = scan_frame(ob, scene, view_layer=view_layer, depsgraph=dg, space=space,
+                                        settings=settings)
             except ValueError as e:  # what only a frame shows: a material's bad reflectivity, a zero scale
                 raise BadInput(f"sensor '{ob.name}', frame {frame}: {e}") from None
             structure = result.structure
+            structures = session.described(dg)
             try:
                 written.append(write_scan(result, folder / file_name(ob, frame, fmt), fmt))
                 if fmt == "kitti":  # rewritten whole after each frame: it always matches the frames written
@@ -981,7 +986,7 @@ def scan_job(scene, job: Job, ob, *, frames, directory, fmt, space="WORLD", view
         if (scene.frame_current, scene.frame_subframe) != old:
             scene.frame_set(old[0], subframe=old[1])
     return {"files": list(written), "frames": count, "rays": rays, "points": points, "folder": folder,
-            "structure": structure}
+            "structure": structure, "structures": structures}
 
 
 # -- the operator -------------------------------------------------------------------------------
@@ -1076,4 +1081,5 @@ def scan_command(scene, args, out_dir, stdout) -> dict:
     print(f"hybrid_raycast scan: {result['frames']} frames, {result['rays']:,} rays, {result['points']:,} points "
           f"({used['motion']}, {used['returns']} returns) -> {result['folder']}", file=stdout, flush=True)
     return {"command": "scan", "sensor": ob.name, "frames": list(frames), "format": fmt, "space": space, **used,
-            "rays": result["rays"], "points": result["points"], "files": [str(p) for p in result["files"]]}
+            "rays": result["rays"], "points": result["points"], "files": [str(p) for p in result["files"]],
+            "structure": result["structure"], "structures": result["structures"]}

@@ -36,6 +36,7 @@ the add-on's own writes (the AO bake's colour attribute) are adopted by
 
 from __future__ import annotations
 
+import contextlib
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -44,7 +45,7 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
-from .. import core
+from .. import core, settings
 from ..core.mesh import unit_normals
 from .extract import NoGeometryError, forget, scene_layout, scene_summary
 from .jobs import InvalidGeometry, NoGeometry
@@ -183,6 +184,11 @@ SOUPS_KEPT = 4
 #: how many times instancing must multiply the unique triangles for a scene to be traced on
 #: two levels from its first call (``Session.instanced``)
 INSTANCED_FROM = 8
+#: what each lasting part has served, for the rule over its life (``Session._life_choice``):
+#: ('soup', still placements' identities) or ('bottom', mesh key) -> rays
+LIFE: dict = {}
+#: the calls a job still expects (``expecting``), None outside a job that said
+JOB: list = [None]
 #: the timings of the last call, per session: what the call paid for
 TIMING_KEYS = ("extract", "bottom_builds", "top_level", "trace")
 
@@ -208,6 +214,9 @@ class Session:
     structures: dict = field(default_factory=dict)
     #: structures' key -> why its moved placements were rebuilt flat (the scene summary's words)
     rebuilt_why: dict = field(default_factory=dict)
+    #: the auto structure's key -> its parts' choices, in the Split's order (the soups, then
+    #: each bottom level): ``_life_choice``'s dicts with 'what' and 'triangles'
+    choices: dict = field(default_factory=dict)
     #: the plan of the first cast (``api``), and of the analysis when it made this session
     plan: object = None
     analysis_plan: object = None
@@ -258,7 +267,7 @@ class Session:
             self._summary["bounds"] = [x.tolist() for x in self.layout.bounds()]
         return self._summary
 
-    def tracer(self, kind: str, rays=None, batch=None, **config):
+    def tracer(self, kind: str, rays=None, batch=None, *, auto=False, grid_config=None, **config):
         """What traces with ``kind``: the flat structure while the scene has not changed
         since its first call; after a change, a ``core.Split``: a flat structure over the
         placements that stayed put (built once while they do, shared by the sessions that
@@ -276,52 +285,167 @@ class Session:
         Those rays: of the session's first batch (``rays``: the rays until the next change,
         as far as is known), for a few moved placements only those passing near them
         (``_rays_near``: the loop top level tests nothing else), estimated on a sample of
-        ``batch`` (origins, directions, tmin, tmax)."""
+        ``batch`` (origins, directions, tmin, tmax).
+
+        ``auto``: each part picks its own structure by the rule over its life
+        (``_life_choice``): the still soup and each bottom level for the rays they are
+        expected to serve until they change, a part rebuilt this call for this call's rays;
+        ``kind`` is then the fallback where the calibration cannot price a part, and
+        ``grid_config`` the grid's settings."""
         if not self.changed and not self.instanced:
             return self.structure(kind, **config)
-        cfg = tuple(sorted(config.items()))
-        k = ("twolevel", kind, cfg)
+        grid_config = dict(grid_config or {})
+        k = self.auto_key(grid_config) if auto else ("twolevel", kind, tuple(sorted(config.items())))
         acc = self.structures.get(k)
-        if acc is None:
-            lay = self.traced_layout
-            still = self.still if self.still is not None else np.zeros(len(lay.placement_group), bool)
-            moving = np.flatnonzero(~still)
-            t0 = time.perf_counter()
-            soups = [self._soup(kind, config, np.flatnonzero(still))] if still.any() else []
-            two = None
-            if len(moving) and self.sweep is None:
-                # after a change, a mesh read afresh (deforming, edited, new) is built now
-                # whatever its form: flat, as that traces fastest (an instanced scene keeps its
-                # copies on two levels); a moved mesh kept from before, when it has fewer
-                # triangles than the rays passing near it
-                fresh = np.array([lay.groups[g].fresh for g in lay.placement_group[moving].tolist()], bool) \
-                    if self.changed and not self.instanced else np.zeros(len(moving), bool)
-                kept_tris = int(sum(len(lay.groups[g].tris) for g in lay.placement_group[moving[~fresh]].tolist()))
-                flat = fresh.copy()
-                if (~fresh).any() and rays is not None and kept_tris <= self._rays_near(lay, moving[~fresh], rays, batch):
-                    flat[:] = True
-                if flat.any():
-                    mesh, glob, inst, local = lay.soup(moving[flat])
-                    soups.append((core.build(mesh.prepare(), kind, **config), glob, inst, local))
-                    self.rebuilt_why[k] = (MOVED_FLAT if (flat & ~fresh).any() else
-                                           "read afresh this call (deformed, edited or new): rebuilt flat")
-                    moving = moving[~flat]
+        if acc is not None:
+            return acc
+        lay = self.traced_layout
+        still = self.still if self.still is not None else np.zeros(len(lay.placement_group), bool)
+        moving = np.flatnonzero(~still)
+        near = why = None
+        sizes = np.array([len(g.tris) for g in lay.groups], np.int64)
+        # with auto, each part's choice (``_life_choice``), in the Split's order: the soups, then each bottom
+        info = []
+
+        def pick_for(tris, life_key, built, near, lasting, what):
+            if not auto:
+                return kind, dict(config)
+            c = self._life_choice(kind, int(tris), rays, near, life_key, built, lasting)
+            c.update(what=what, triangles=int(tris))
+            info.append(c)
+            return c["kind"], (grid_config if c["kind"] == "grid" else {})
+
+        t0 = time.perf_counter()
+        soups, two = [], None
+        if still.any():
+            placements = np.flatnonzero(still)
+            ident = self._soup_ident(placements)
+            built = {kk for (kk, _c, i) in SOUPS if i == ident}
+            sk, sc = pick_for(sizes[lay.placement_group[placements]].sum(), ("soup", ident), built, rays, True,
+                              "the placements that stayed put")
+            soups.append(self._soup(sk, sc, placements, ident))
+            if soups[-1] is None and auto:
+                info.pop()
+        if len(moving) and self.sweep is None:
+            # after a change, a mesh read afresh (deforming, edited, new) is built now
+            # whatever its form: flat, as that traces fastest (an instanced scene keeps its
+            # copies on two levels); a moved mesh kept from before, when it has fewer
+            # triangles than the rays passing near it
+            fresh = np.array([lay.groups[g].fresh for g in lay.placement_group[moving].tolist()], bool) \
+                if self.changed and not self.instanced else np.zeros(len(moving), bool)
+            kept_tris = int(sizes[lay.placement_group[moving[~fresh]]].sum())
+            near = self._rays_near(lay, moving[~fresh], rays, batch) if (~fresh).any() and rays is not None else None
+            flat = fresh.copy()
+            if near is not None and kept_tris <= near:
+                flat[:] = True
+            if flat.any():
+                mesh, glob, inst, local = lay.soup(moving[flat])
+                why = (MOVED_FLAT if (flat & ~fresh).any() else
+                       "read afresh this call (deformed, edited or new): rebuilt flat")
+                fk, fc = pick_for(len(glob), None, (), self._rays_near(lay, moving[flat], rays, batch)
+                                  if auto and rays is not None else None, False, "rebuilt this call")
+                soups.append((core.build(mesh.prepare(), fk, **fc), glob, inst, local))
+                moving = moving[~flat]
+        t1 = time.perf_counter()
+        if len(moving):
+            groups = np.unique(lay.placement_group[moving])
+            if near is None and self.sweep is None:
+                near = rays
+            bottoms = {}
+            for gi in groups.tolist():
+                g = lay.groups[gi]
+                built = {kk for (key, kk, _c) in BOTTOMS if key == g.key} if g.key is not None else set()
+                bk, bc = pick_for(sizes[gi], ("bottom", g.key) if g.key is not None else None, built,
+                                  rays if self.sweep is not None else near, g.key is not None,
+                                  f"the mesh of '{self._group_name(lay, gi)}', on two levels" if auto else "")
+                bottoms[gi] = self._bottom(g, bk, bc)
             t1 = time.perf_counter()
-            if len(moving):
-                groups = np.unique(lay.placement_group[moving])
-                bottoms = {int(gi): self._bottom(lay.groups[gi], kind, config) for gi in groups.tolist()}
-                t1 = time.perf_counter()
-                order = {gi: n for n, gi in enumerate(bottoms)}
-                two = core.TwoLevel([bottoms[gi] for gi in order],
-                                    np.array([order[int(g)] for g in lay.placement_group[moving]], np.int32),
-                                    lay.matrices[moving], lay.tri_base[moving])
-                if self.sweep is not None:  # each ray meets the movers at its own instant
-                    two = core.Swept(two, self.sweep[1][:, moving])
-            acc = self.structures[k] = core.Split([s for s in soups if s is not None], moving=two,
-                                                  moving_instances=moving if two is not None else None)
-            self.timings["bottom_builds"] += t1 - t0
-            self.timings["top_level"] += time.perf_counter() - t1
+            order = {gi: n for n, gi in enumerate(bottoms)}
+            two = core.TwoLevel([bottoms[gi] for gi in order],
+                                np.array([order[int(g)] for g in lay.placement_group[moving]], np.int32),
+                                lay.matrices[moving], lay.tri_base[moving])
+            if self.sweep is not None:  # each ray meets the movers at its own instant
+                two = core.Swept(two, self.sweep[1][:, moving])
+        acc = self.structures[k] = core.Split([p for p in soups if p is not None], moving=two,
+                                              moving_instances=moving if two is not None else None)
+        if why is not None:
+            self.rebuilt_why[k] = why
+        if auto:
+            self.choices[k] = info
+            settings.PARTS[self._summary.get("scene", "")] = self.describe()
+        self.timings["bottom_builds"] += t1 - t0
+        self.timings["top_level"] += time.perf_counter() - t1
         return acc
+
+    @staticmethod
+    def auto_key(grid_config) -> tuple:
+        """The key of the structure whose parts chose their own kinds (``tracer(auto=True)``)."""
+        return ("twolevel", "auto", tuple(sorted(dict(grid_config or {}).items())))
+
+    def _life_estimates(self, n: int) -> dict:
+        """{kind: ``decide.Cost``} for an N-triangle part: the grid from the calibration's
+        scenes, the candidates from its fitted models, each per-ray time scaled by what the
+        session's plan measured on this scene against the same estimate at its size (the
+        scene at hand anchors the calibration's figures)."""
+        cal = self.calibration
+        if cal is None:
+            return {}
+        p = self.plan
+        out = {}
+        g = cal.grid_estimate(n)
+        if g is not None:
+            ref = cal.grid_estimate(p.triangles) if p is not None and p.grid_built and p.grid_per_ray > 0 else None
+            f = p.grid_per_ray / ref.per_ray if ref is not None and ref.per_ray > 0 else 1.0
+            out["grid"] = core.decide.Cost.point("grid", g.build_time, g.per_ray * f)
+        for kind in core.factory.available_kinds([k for k in self.kinds if k in cal.fits])[0]:
+            e = cal.estimate(kind, n)
+            c = p.candidates.get(kind) if p is not None else None
+            ref = cal.estimate(kind, p.triangles) if c is not None else None
+            f = c.per_ray / ref.per_ray if ref is not None and ref.per_ray > 0 and c.per_ray > 0 else 1.0
+            out[kind] = core.decide.Cost.point(kind, e.build_time, e.per_ray * f)
+        return out
+
+    def _life_choice(self, kind, tris, rays, near, life_key, built, lasting) -> dict:
+        """The rule over a part's life (``decide.over_life``) for a part of ``tris``
+        triangles that ``near`` of this call's ``rays`` pass near.  A part rebuilt this
+        call (``lasting`` False) lives for this call; one kept while it stays the same (the
+        still soup, a bottom level) for the job's calls when a job said how many
+        (``expecting``), else for as many rays again as it has served (``LIFE``): the
+        ski-rental rule across calls, never worse than about twice the best choice in
+        hindsight.  ``kind`` where nothing can be priced."""
+        ests = self._life_estimates(tris)
+        now = float(near if near is not None else (rays or 0))
+        served = LIFE.get(life_key, 0.0) if life_key is not None else 0.0
+        if not lasting:
+            life, how = now, "this call, as it is rebuilt when it changes"
+        elif JOB[0] is not None:
+            life, how = now * JOB[0], f"the job's {JOB[0]:,} calls to come"
+        else:
+            life, how = now + served, (f"this call and as many again as the {served:,.0f} rays it has served "
+                                       "(the ski-rental rule)" if served else
+                                       "this call, its first (each call it serves raises it: the ski-rental rule)")
+        if not ests:
+            return {"kind": kind, "life_key": life_key, "share": now / rays if rays else 0.0, "rays": life,
+                    "life": how, "why": "no calibration prices this part: the session's structure"}
+        pick, totals, be, be_kind = core.decide.over_life(ests, life, built)
+        words = f"the least predicted total for {life:,.0f} rays over its life: {how}"
+        return {"kind": pick, "life_key": life_key, "share": now / rays if rays else 0.0, "rays": life, "life": how,
+                "totals": totals, "built": sorted(built), "break_even": be, "break_even_kind": be_kind, "why": words}
+
+    def served(self, key, m: int):
+        """Count ``m`` more rays of this session against the parts of its structure ``key``
+        (``LIFE``, what the rule over a part's life weighs next)."""
+        for c in self.choices.get(key, ()):
+            if c["life_key"] is not None:
+                LIFE[c["life_key"]] = LIFE.get(c["life_key"], 0.0) + c["share"] * m
+
+    @staticmethod
+    def _group_name(lay, gi) -> str:
+        first = int(np.flatnonzero(lay.placement_group == gi)[0])
+        try:
+            return lay.instances.objects[lay.instances.instance_object[first]].name
+        except (ReferenceError, IndexError):
+            return "?"
 
     #: rays of a batch sampled to estimate how many pass near the moved placements
     NEAR_SAMPLE = 4096
@@ -359,12 +483,16 @@ class Session:
         """The layout the structures are built over: ``layout``, or a sweep's first instant."""
         return self.layout if self.sweep is None else self.sweep[0]
 
-    def _soup(self, kind, config, placements):
+    def _soup_ident(self, placements) -> tuple:
+        """What a still soup is made of: its placements' meshes, matrices and first triangles."""
+        lay = self.traced_layout
+        return tuple((lay.groups[lay.placement_group[i]].key, lay.matrices[i].tobytes(), int(lay.tri_base[i]))
+                     for i in placements.tolist())
+
+    def _soup(self, kind, config, placements, ident):
         """The flat structure over the still placements' world triangles, shared by the
         sessions of a scene while the same placements stay put."""
         lay = self.traced_layout
-        ident = tuple((lay.groups[lay.placement_group[i]].key, lay.matrices[i].tobytes(), int(lay.tri_base[i]))
-                      for i in placements.tolist())
         key = (kind, tuple(sorted(config.items())), ident)
         got = SOUPS.pop(key, None)
         if got is None:
@@ -398,23 +526,30 @@ class Session:
         for key, acc in self.structures.items():
             if key[0] != "twolevel":
                 continue
-            kind = key[1]
+            choices = [_choice_dict(c) for c in self.choices.get(key, ())]  # the soups', then each bottom's
             for i, (soup, glob, inst, _loc) in enumerate(acc.soups):
                 still = i == 0 and still_first
                 out["parts"].append({  # a soup holds whole placements in order: count the runs
-                    "kind": kind, "form": "flat", "placements": int(np.count_nonzero(np.diff(inst)) + 1) if len(inst) else 0,
+                    "kind": soup.kind, "form": "flat",
+                    "placements": int(np.count_nonzero(np.diff(inst)) + 1) if len(inst) else 0,
                     "triangles": int(len(glob)),
                     "why": ("these placements stayed put since the last change: one flat structure, kept while "
                             "they do") if still else
                            self.rebuilt_why.get(key, MOVED_FLAT)})
+                if choices:
+                    out["parts"][-1]["choice"] = choices.pop(0)
             if acc.moving is not None:
+                kinds = sorted({b.kind for b in getattr(acc.moving, "two", acc.moving).bottoms})
                 out["parts"].append({
-                    "kind": kind, "form": "two levels", "placements": int(acc.moving.instance_count),
+                    "kind": kinds[0] if len(kinds) == 1 else "mixed", "form": "two levels",
+                    "placements": int(acc.moving.instance_count),
                     "triangles": int(acc.moving.triangle_count),
                     "why": (f"moved within the sweep: one structure per mesh, built once, each ray meeting it "
                             f"placed at the ray's own instant (of {len(self.sweep[1])})") if self.sweep is not None else
                            "moved, with more triangles than the call's rays passing near it: one structure per mesh, built once, "
                            "placed under a top level"})
+                if choices:  # one per mesh, by the rule over its life
+                    out["parts"][-1]["meshes"] = choices
         if self.instanced:
             out["instanced"] = (f"instancing multiplies {unique:,} unique triangles {lay.triangle_count / max(unique, 1):.0f}"
                                 f" times over {len(lay.placement_group):,} placements: two levels from the first call")
@@ -625,7 +760,12 @@ class Session:
             return out, p.chosen
         if self.chosen == "grid":
             self._maybe_switch(len(o))
-        acc = pick(self.chosen, **(grid_config if self.chosen == "grid" else {}))
+        own = grid_config if self.chosen == "grid" else {}
+        if flat:
+            acc = self.structure(self.chosen, **own)
+        else:  # each part by the rule over its life, the session's choice where none can be priced
+            acc = self.tracer(self.chosen, rays=len(o), batch=(o, d, tmin, tmax), auto=True, grid_config=grid_config,
+                              **own)
         t0 = time.perf_counter()
         out = (acc.occluded if any_hit else acc.trace)(o, d, tmin, tmax, **extra)
         dt = time.perf_counter() - t0
@@ -633,7 +773,13 @@ class Session:
         if self.chosen == "grid":
             self.grid_time += dt
             self.grid_rays += len(o)
-        return out, self.chosen
+        if flat:
+            return out, self.chosen
+        key = self.auto_key(grid_config)
+        self.served(key, len(o))
+        parts = self.choices.get(key)
+        # the structure that holds the most triangles names the trace (the parts are in ``describe``)
+        return out, max(parts, key=lambda c: c["triangles"])["kind"] if parts else self.chosen
 
     def _maybe_switch(self, m: int):
         """Leave the grid for the candidate estimated fastest per ray, when the rays of all
@@ -656,6 +802,18 @@ class Session:
         """Adopt a structure built elsewhere over this mesh (a plan's grid)."""
         if acc is not None and getattr(acc, "mesh", None) is self.mesh:
             self.structures.setdefault((acc.kind, tuple(sorted(config.items()))), acc)
+
+
+def _choice_dict(c: dict) -> dict:
+    """A part's choice (``Session._life_choice``) as JSON: times in seconds, a break-even of
+    null for never."""
+    be = c.get("break_even")
+    return {"what": c.get("what", ""), "kind": c["kind"], "triangles": c.get("triangles", 0),
+            "rays_expected": float(c["rays"]), "life": c["life"], "why": c["why"],
+            "built_already": list(c.get("built", ())),
+            "totals": {k: float(v) for k, v in c.get("totals", {}).items()},
+            "break_even": float(be) if be is not None and be != float("inf") else None,
+            "break_even_kind": c.get("break_even_kind")}
 
 
 def _settings(depsgraph, settings, selected_only, grid_density):
@@ -711,6 +869,14 @@ def get(depsgraph, settings=None, *, selected_only=None, attributes=(), progress
     return s
 
 
+def described(depsgraph, selected_only=None) -> dict | None:
+    """``Session.describe`` of the stored session of ``depsgraph``'s scene and view layer as
+    it is (no extraction; None without one)."""
+    selected_only, _ = _settings(depsgraph, None, selected_only, None)
+    s = SESSIONS.get(session_key(depsgraph, selected_only))
+    return s.describe() if s is not None else None
+
+
 def swept(base: Session, layout, matrices, still) -> Session:
     """A session for a sweep whose placements only move: ``layout`` (the base session's
     scene at the sweep's first instant) at K instants, ``matrices`` (K, I, 4, 4) world, each
@@ -743,6 +909,9 @@ def _prune():
         del MESHES[k]
     for k in [k for k in BOTTOMS if k[0] not in live]:
         del BOTTOMS[k]
+    soups = {k[2] for k in SOUPS}
+    for k in [k for k in LIFE if k[1] not in (live if k[0] == "bottom" else soups)]:
+        del LIFE[k]
 
 
 def _add_attributes(s: Session, depsgraph, selected_only, attributes):
@@ -838,11 +1007,27 @@ def on_load_post(*_args):
     clear()
 
 
+@contextlib.contextmanager
+def expecting(calls: int):
+    """Within it, a job has said how many calls it makes: the parts that last (the still
+    soup, the bottom levels) are chosen for that many calls of the current one's rays
+    (``Session._life_choice``), not by the ski-rental rule.  Set ``JOB[0]`` to the calls
+    still to come before each one when they count down."""
+    before = JOB[0]
+    JOB[0] = max(1, int(calls))
+    try:
+        yield JOB
+    finally:
+        JOB[0] = before
+
+
 def clear():
     SESSIONS.clear()
     MESHES.clear()
     BOTTOMS.clear()
     SOUPS.clear()
+    LIFE.clear()
+    settings.PARTS.clear()
     forget()
     ANALYSED.clear()
     EDITS.clear()

@@ -60,6 +60,37 @@ def test_choose_with_answered_samples_weighs_the_rays_left_and_embree_retraces_a
     assert rule.choose([800], 4e-6, costs_of(bvh=(0.0, 1e-6)), answered=1000)[0] == "grid"  # nothing left to trace
 
 
+def test_over_life_is_the_least_total_with_only_what_is_built_sunk():
+    grid, bvh = cost.Cost.point("grid", 0.01, 4e-6), cost.Cost.point("bvh", 0.05, 2e-6)
+    ests = {"grid": grid, "bvh": bvh}
+    # nothing built: the BVH pays for its extra build (0.04 s) over 0.04 / 2e-6 = 20,000 rays
+    kind, totals, be, be_kind = rule.over_life(ests, 19_999)
+    assert kind == "grid" and math.isclose(be, 20_000) and be_kind == "bvh"
+    assert math.isclose(totals["grid"], 0.01 + 19_999 * 4e-6) and math.isclose(totals["bvh"], 0.05 + 19_999 * 2e-6)
+    assert rule.over_life(ests, 20_001)[0] == "bvh"
+    assert rule.over_life(ests, 20_000)[0] == "grid"  # a tie keeps the grid
+    # the grid built already: the BVH must pay its whole build, 0.05 / 2e-6 = 25,000 rays
+    kind, _, be, _ = rule.over_life(ests, 24_000, built={"grid"})
+    assert kind == "grid" and math.isclose(be, 25_000)
+    assert rule.over_life(ests, 26_000, built={"grid"})[0] == "bvh"
+    # the BVH built already: it is cheapest from the first ray, and beats the grid at once
+    kind, _, be, _ = rule.over_life(ests, 1, built={"bvh"})
+    assert kind == "bvh" and be == 0.0
+    # a structure slower per ray never beats the grid; no grid estimate: no break-even
+    assert rule.over_life({"grid": grid, "bvh": cost.Cost.point("bvh", 0.0, 5e-6)}, 1e9)[2] == math.inf
+    assert rule.over_life({"bvh": bvh}, 10)[2:] == (math.inf, None)
+
+
+def test_grid_estimate_follows_the_calibration_scenes_power_law():
+    recs = [SceneRecord(f"s{n}", n, 1000, {"grid": Measurement(2e-7 * n, 1000 * 1e-9 * n ** 0.1, 1000)})
+            for n in (1_000, 10_000, 100_000, 1_000_000)]
+    g = cost.grid_estimate(recs, 300_000)
+    assert math.isclose(g.build_time, 2e-7 * 300_000, rel_tol=1e-9)
+    assert math.isclose(g.per_ray, 1e-9 * 300_000 ** 0.1, rel_tol=1e-9)
+    assert g.build_low <= g.build_time <= g.build_high and g.per_ray_low <= g.per_ray <= g.per_ray_high
+    assert cost.grid_estimate(recs[:2], 300_000) is None  # fewer than 3 scenes measured the grid
+
+
 def test_choose_keeps_the_grid_at_or_below_the_floor_whatever_the_costs():
     # bvh is cheaper from 33,334 rays on (R* = 33,333.3); a floor of 50,000 overrides that
     # up to and including 50,000 rays, and changes nothing above it

@@ -400,3 +400,79 @@ def test_the_analysis_json_says_how_the_scene_is_traced(fresh, addon):
     rec = json.loads(scene.hybrid_raycast.last_analysis_json)
     parts = rec["scene_structures"]["parts"]
     assert rec["scene_structures"]["placements"] == 4 and parts and all(p["why"] for p in parts), rec["scene_structures"]
+
+
+def _scatter_and_wave(addon):
+    """A static scatter of small triangles (where the numpy BVH beats the grid per ray) and a
+    waving grid beside it (read afresh every frame); numpy structures only."""
+    from blender_scenes import add_mesh
+
+    scene = bpy.context.scene
+    scene.hybrid_raycast.candidates = {"BVH"}
+    m = addon.core.scenes.scatter(8000)
+    lo, hi = m.bounds()
+    add_mesh("Scatter", (m.vertices - lo) * (10.0 / float((hi - lo).max())) - 5.0, m.triangles.tolist())
+    wave = add_plane("Wave", 4.0, z=0.0, location=(-3.0, 0.0, 0.0), subdivisions=16)
+    wave.modifiers.new("w", "WAVE")
+    scene.frame_set(1)
+    return scene
+
+
+def _parts(result):
+    """(the still soup's choice, the part read afresh's choice) of a cast's scene description."""
+    parts = [p for p in result.scene["parts"] if "choice" in p]
+    still = [p["choice"] for p in parts if p["choice"]["what"] == "the placements that stayed put"]
+    fresh = [p["choice"] for p in parts if p["choice"]["what"] == "rebuilt this call"]
+    return still[0], fresh[0]
+
+
+def test_each_part_chooses_its_structure_over_its_life_by_the_ski_rental_rule(fresh, addon):
+    scene = _scatter_and_wave(addon)
+    o, d = _rays(4_000, seed=3)
+    addon.api.cast(o, d)  # the first call plans over the flat scene
+    seen, switched = [], None
+    for frame in range(2, 40):
+        scene.frame_set(frame)
+        r = addon.api.cast(o, d)
+        still, part = _parts(r)
+        seen.append(still)
+        # the still soup expects as many rays again as it has served: the rays of each frame since the change
+        assert still["rays_expected"] == pytest.approx(4_000 * (frame - 1))
+        # the wave lives one frame: the rays passing near it in this one call, at the least total
+        assert 0 < part["rays_expected"] < 4_000
+        assert part["kind"] == min(part["totals"], key=lambda k: (part["totals"][k], k != "grid"))
+        if switched is None and still["kind"] == "bvh":
+            switched = frame
+        if frame == 2 or frame == switched:  # the parts answer as a flat extraction of the scene now
+            _mesh, ref = _fresh_flat(addon, o, d)
+            assert np.array_equal(r.hit, ref.triangle >= 0)
+            assert np.allclose(r.t[r.hit], ref.t[r.hit], rtol=1e-5, atol=1e-5)
+        if switched is not None and frame > switched + 1:
+            break
+    assert switched is not None, f"the still soup never left the grid: {seen[-1]}"
+    assert all(c["kind"] == "bvh" for c in seen[switched - 2:]), "a built BVH costs nothing more to keep"
+    before = seen[switched - 3]  # the frame before the switch, the grid built already
+    assert before["kind"] == "grid" and "grid" in before["built_already"]
+    assert before["rays_expected"] <= before["break_even"] < seen[switched - 2]["rays_expected"]
+    assert before["totals"]["grid"] <= before["totals"]["bvh"]
+
+
+def test_a_job_that_says_its_calls_gives_the_lasting_parts_their_structure_at_once(fresh, addon):
+    scene = _scatter_and_wave(addon)
+    session = addon.operators.session
+    o, d = _rays(4_000, seed=3)
+    addon.api.cast(o, d)
+    scene.frame_set(2)
+    with session.expecting(200):
+        r = addon.api.cast(o, d)
+    still, part = _parts(r)
+    assert still["kind"] == "bvh" and still["rays_expected"] == 200 * 4_000
+    assert "the job's 200 calls" in still["life"]
+    assert 0 < part["rays_expected"] < 4_000, "a part rebuilt every frame is chosen for its one frame"
+    assert session.JOB[0] is None, "the hint ends with the job"
+    # the panel draws the same parts
+    from hybrid_raycast.ui.panel import part_lines
+
+    lines = [t for t, _ in part_lines(addon.settings.PARTS[scene.name])]
+    assert any(t.startswith("BVH, flat: 1 placements, 8,000 triangles") for t in lines), lines
+    assert any("BVH: 800k rays over its life" in t for t in lines), lines

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 
@@ -265,8 +266,11 @@ def run_cli(addon, *argv):
 def test_cli_scan_writes_every_frame_and_exits_0(fresh, addon, tmp_path):
     scene_with_sensor()
     code, out, err = run_cli(addon, "scan", "--sensor", "Lidar", "--frames", "1-3", "--output", str(tmp_path),
-                             "--format", "npz", "--space", "sensor")
+                             "--format", "npz", "--space", "sensor", "--json", str(tmp_path / "scan.json"))
     assert code == 0, err
+    doc = json.loads((tmp_path / "scan.json").read_text())
+    assert doc["structure"] in ("grid", "bvh", "embree") and doc["structures"]["parts"], doc
+    assert all(p["kind"] in ("grid", "bvh", "embree", "mixed") for p in doc["structures"]["parts"])
     files = sorted(p for p in os.listdir(tmp_path) if p.endswith(".npz"))
     assert files == ["Lidar_00001.npz", "Lidar_00002.npz", "Lidar_00003.npz"]
     z = np.load(tmp_path / files[1])

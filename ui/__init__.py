@@ -3,6 +3,7 @@
 from .panel import (
     VIEW3D_PT_hybrid_raycast,
     VIEW3D_PT_hybrid_raycast_figures,
+    VIEW3D_PT_hybrid_raycast_parts,
     VIEW3D_PT_hybrid_raycast_settings,
     VIEW3D_PT_hybrid_raycast_trace,
 )
@@ -10,6 +11,7 @@ from .panel import (
 classes = (
     VIEW3D_PT_hybrid_raycast,
     VIEW3D_PT_hybrid_raycast_figures,
+    VIEW3D_PT_hybrid_raycast_parts,
     VIEW3D_PT_hybrid_raycast_settings,
     VIEW3D_PT_hybrid_raycast_trace,
 )

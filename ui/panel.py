@@ -9,7 +9,7 @@ and tracing (camera passes, AO bake).  Everything drawn here is also a property 
 
 import bpy
 
-from ..settings import RUNNING, figures_from_props
+from ..settings import PARTS, RUNNING, figures_from_props
 from . import plot
 
 
@@ -188,6 +188,49 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
         if props.notes:
             for note in props.notes.split(" | "):
                 col.label(text=note)
+
+
+def part_lines(described: dict) -> list[tuple[str, str]]:
+    """(text, icon) lines of a scene's parts (``Session.describe``): each part's structure,
+    form and size, and for a part that chose by the rule over its life, the rays it expects,
+    why, and from how many rays a structure beats the grid."""
+    names = {"grid": "Grid", "bvh": "BVH", "embree": "Embree", "mixed": "Mixed"}
+    out = []
+
+    def choice(c, indent):
+        be = c.get("break_even")
+        tail = "" if c.get("break_even_kind") is None else (
+            f"; {names.get(c['break_even_kind'], c['break_even_kind'])} beats the grid "
+            + ("never" if be is None else "at once" if be == 0 else f"from {_rays(be)} rays"))
+        out.append((f"{indent}{names.get(c['kind'], c['kind'])}: {_rays(c['rays_expected'])} rays over its life{tail}",
+                    "BLANK1"))
+        out.append((f"{indent}  ({c['life']})", "BLANK1"))
+
+    for p in described.get("parts", ()):
+        out.append((f"{names.get(p['kind'], p['kind'])}, {p['form']}: {p['placements']:,} placements, "
+                    f"{p['triangles']:,} triangles", "MESH_DATA"))
+        if "choice" in p:
+            choice(p["choice"], "  ")
+        for m in p.get("meshes", ()):
+            out.append((f"  {m['what']}, {m['triangles']:,} triangles", "BLANK1"))
+            choice(m, "    ")
+    return out
+
+
+class VIEW3D_PT_hybrid_raycast_parts(_Base, bpy.types.Panel):
+    bl_label = "Structures per Part"
+    bl_parent_id = "VIEW3D_PT_hybrid_raycast"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        described = PARTS.get(context.scene.name)
+        if not described:
+            layout.label(text="One flat structure until the scene changes between calls", icon="INFO")
+            return
+        col = layout.column(align=True)
+        for text, icon in part_lines(described):
+            col.label(text=text, icon=icon)
 
 
 class VIEW3D_PT_hybrid_raycast_settings(_Base, bpy.types.Panel):

@@ -20,4 +20,4 @@ from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, KindFit, Measure
 from .load_watch import QUIET_SHARE, OthersShare, in_passes, interleaved
 from .measurements import GRID_LARGE_RAYS, RAYS_PER_SCENE, SAMPLE_LADDER, calibrate, measure, time_trace, warm_up
 from .truth import BreakEven, break_even_jobs, measure_break_even, measure_break_evens
-from .rule import REUSES_SAMPLES, choose
+from .rule import REUSES_SAMPLES, choose, over_life

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, CountFit, KindFit, Measurement, SceneRecord,
-                   Prior, describe_fit, fit, fit_counts, prior)
+                   Prior, describe_fit, fit, fit_counts, grid_estimate, grid_laws, prior)
 
 #: bump when the JSON layout or the meaning of a field changes.  3: constants
 #: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
@@ -120,6 +120,8 @@ class Calibration:
     #: per-ray time models on the grid sample's work counts, {'grid' | kind: CountFit}
     #: (``cost.fit_counts``); empty in files made before them: the plan then times its sample
     counts: dict = field(default_factory=dict)
+    #: (the scenes list, ``cost.grid_laws`` of it): the grid's laws, fitted on first use
+    _grid_laws: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -130,6 +132,13 @@ class Calibration:
         if kind not in self.fits:
             raise KeyError(f"no calibration constants for {kind!r} (calibrated: {', '.join(self.fits) or 'none'})")
         return MODELS[self.model][1](self.fits[kind], kind, n)
+
+    def grid_estimate(self, n: int) -> Cost | None:
+        """The grid's build and time per ray for an N-triangle mesh from the calibration
+        scenes alone (``cost.grid_estimate``), None when they measured no grid."""
+        if self._grid_laws is None or self._grid_laws[0] is not self.scenes:  # fitted once per scene list
+            self._grid_laws = (self.scenes, grid_laws(self.scenes, self.spread))
+        return grid_estimate(self.scenes, n, self.spread, laws=self._grid_laws[1] or ())
 
     def grid_sample_ratio(self, k: int) -> tuple[float, float, float]:
         """(median, low, high) of the per-scene ratio large-workload grid time per ray /
@@ -198,6 +207,7 @@ class Calibration:
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        d.pop("_grid_laws")
         d["spread"] = list(self.spread)
         return d
 

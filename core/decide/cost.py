@@ -894,3 +894,33 @@ def prior(records: list[SceneRecord], n: int, kinds) -> Prior:
                   for r, (_, y) in zip(have, every)]
             ceiling[k] = CEILING_MARGIN * max(r0) * float(n)
     return Prior(FLOOR_MARGIN * min(bounds), t_g, per_ray, ceiling, gain_low)
+
+
+def grid_laws(records: list[SceneRecord], spread=DEFAULT_SPREAD) -> tuple | None:
+    """The grid's build and time per ray as power laws in N through the calibration scenes
+    that measured it (least squares on log times), each (c, p, low, high) with y ~ c N^p and
+    [low, high] the scenes' spread around it as factors; None with fewer than 3 such scenes."""
+    have = [r for r in records if "grid" in r.kinds and r.triangles > 0]
+    if len(have) < 3:
+        return None
+    x = [r.triangles for r in have]
+    laws = []
+    for y in ([r.kinds["grid"].build_time for r in have], [r.kinds["grid"].per_ray for r in have]):
+        c, p = _loglog_fit(x, y)
+        laws.append((c, p, *_ratio_spread(x, y, lambda v, c=c, p=p: c * float(v) ** p, spread)))
+    return tuple(laws)
+
+
+def grid_estimate(records: list[SceneRecord], n: int, spread=DEFAULT_SPREAD, laws=None) -> Cost | None:
+    """The grid's build and time per ray for an N-triangle mesh from the calibration scenes
+    alone, before any sample (``grid_laws``, or ``laws`` made by it already); None without
+    them.  What the persistent scene weighs per mesh, where a sample per mesh would cost
+    more than the choice it informs."""
+    laws = grid_laws(records, spread) if laws is None else laws
+    if not laws or n <= 0:
+        return None
+    figures = []
+    for c, p, lo, hi in laws:
+        y = c * float(n) ** p
+        figures += [y, y * lo, y * hi]
+    return Cost("grid", *figures)

@@ -10,11 +10,19 @@ name in alphabetical order.
 When the plan's K samples are K of the workload's rays, their answers are kept by the
 structures in REUSES_SAMPLES, so those trace only the R - K others; every other
 structure retraces all R (``answered``).
+
+Over a structure's life (``over_life``: the persistent scene's choice per mesh) nothing is
+sunk but what is built already: each structure costs its build, unless built, plus the
+rays it is expected to serve over its life times its time per ray.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from .cost import break_even
 
 #: structures that answer every ray bit for bit like the grid: a plan that drew its samples
 #: from the workload keeps their answers when it chooses one of these
@@ -46,3 +54,28 @@ def choose(rays, grid_per_ray: float, candidates: dict, answered: int = 0, floor
     names, c = costs(rays, grid_per_ray, candidates, answered)
     picked = np.asarray(names, dtype=object)[np.argmin(c, axis=0)]
     return np.where(np.atleast_1d(np.asarray(rays, np.float64)) <= floor, "grid", picked).astype(object)
+
+
+def over_life(estimates: dict, rays: float, built=()) -> tuple[str, dict, float, str | None]:
+    """(kind, totals, break_even, break_even_kind) for a structure expected to serve ``rays``
+    rays over its life: the least predicted total, ``built`` kinds' builds sunk, ties to the
+    grid, then by name (as ``choose``).
+
+    estimates: {kind: ``cost.Cost``}; totals: {kind: seconds}.  break_even: the rays of
+    its life from which a structure beats the grid, both owned as they are (a built one
+    free), the least over the candidates (0: one beats the grid at once; inf: none ever
+    does), and the candidate that attains it; inf and None without a grid estimate."""
+    r = max(float(rays), 0.0)
+    owned = {k: (0.0 if k in built else float(c.build_time)) for k, c in estimates.items()}
+    totals = {k: owned[k] + r * float(c.per_ray) for k, c in estimates.items()}
+    kind = min(totals, key=lambda k: (totals[k], k != "grid", k))
+    g = estimates.get("grid")
+    best, be_kind = math.inf, None
+    if g is not None:
+        for k in sorted(estimates):
+            if k == "grid":
+                continue
+            be = break_even(max(owned[k] - owned["grid"], 0.0), float(g.per_ray), float(estimates[k].per_ray))
+            if be < best:
+                best, be_kind = be, k
+    return kind, totals, best, be_kind
