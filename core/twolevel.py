@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .hits import Hits
-from .intersect import UNIT_ROUNDOFF, prepare_rays
+from .intersect import UNIT_ROUNDOFF, Rays, prepare_rays
 from .mesh import TriangleMesh
 
 F32 = np.float32
@@ -353,11 +353,17 @@ class TwoLevel:
 
         origins, directions: (M, 3), or one (3,) row broadcast against the other's M rows;
         tmin, tmax: scalars or (M,).  Returns ``InstanceHits``."""
-        rays = self._prepare(origins, directions, tmin, tmax)
+        return self.trace_rays(self._prepare(origins, directions, tmin, tmax), one_origin(origins))
+
+    def trace_rays(self, rays, same_origin: bool) -> InstanceHits:
+        """``trace`` of rays prepared already (``prepare_rays(..., shear=False)`` or the
+        same arrays validated by the caller: ``Split``, whose first soup's trace checked
+        them); ``same_origin``: every ray starts at ``rays.origins[0]``."""
         out = InstanceHits.empty(len(rays), self.triangle_dtype)
         if len(rays) == 0 or self._active.size == 0:
             return out
-        return _nearest_of(rays, self._near(rays, origins), out, lambda sub, rows, best: self._run(sub, best, None))
+        rows = None if self._balls is None else near_rays(rays, *self._balls, same_origin)
+        return _nearest_of(rays, rows, out, lambda sub, rows, best: self._run(sub, best, None))
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """(M,) bool: True where some instance's triangle is hit with tmin < t <= tmax
@@ -762,11 +768,14 @@ class Swept:
 
     def trace(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> InstanceHits:
         """Nearest hit per ray over all instances placed at the ray's instant ``slot``."""
-        rays = TwoLevel._prepare(origins, directions, tmin, tmax)
+        return self.trace_rays(TwoLevel._prepare(origins, directions, tmin, tmax), one_origin(origins), slot=slot)
+
+    def trace_rays(self, rays, same_origin: bool, *, slot) -> InstanceHits:
+        """``trace`` of rays prepared already (``TwoLevel.trace_rays``)."""
         m = len(rays)
         slot = self._slots(slot, m)
         out = InstanceHits.empty(m, self.triangle_dtype)
-        return _nearest_of(rays, near_rays(rays, *self._balls, one_origin(origins)), out,
+        return _nearest_of(rays, near_rays(rays, *self._balls, same_origin), out,
                            lambda sub, rows, best: self._run(sub, slot[rows], best, None))
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf, *, slot) -> np.ndarray:
@@ -825,6 +834,25 @@ class Swept:
         return f"<Swept {self.instance_count} instances at {len(self.matrices)} instants, {self.triangle_count} triangles>"
 
 
+def _first_soup(out: InstanceHits, h: Hits, acc, glob, inst, local):
+    """Write the first soup's hits ``h`` over every ray of ``out`` (empty so far): a soup
+    triangle's global index, instance and local triangle are taken from its tables with one
+    more row for a miss (triangle -1 picks it), kept on the soup's structure while it serves."""
+    ext = getattr(acc, "_miss_rows", None)
+    if ext is None or ext[0] is not glob:
+        tail = np.array([-1])
+        ext = acc._miss_rows = (glob, np.concatenate([glob, tail]), np.concatenate([inst, tail]).astype(np.int32),
+                                np.concatenate([local, tail]).astype(np.int32))
+    k = h.triangle
+    hit = k >= 0
+    out.t = np.where(hit, h.t, F32(np.inf))
+    out.triangle = np.take(ext[1], k)
+    out.u, out.v = np.where(hit, h.u, F32(0)), np.where(hit, h.v, F32(0))
+    out.instance, out.local_triangle = np.take(ext[2], k), np.take(ext[3], k)
+    out.soup = hit.astype(np.int32) - 1  # 0 for the first soup, -1 on a miss
+    out.soup_triangle = k.astype(np.int64)
+
+
 class Split:
     """A scene cut in parts: flat structures over the world-space triangles of some
     instances (``soups``: the instances that stay put, built once while they do; a few
@@ -872,13 +900,16 @@ class Split:
                 h = acc.trace(o32, d32, tmin, tmax)  # one interval for all: no per-ray arrays
             else:
                 h = acc.trace(o32, d32, lo, np.maximum(hi, lo))
+            if si == 0:  # nothing found before: every ray takes the first soup's answer, by whole arrays
+                _first_soup(out, h, acc, glob, inst, local)
+                hi = np.minimum(hi, out.t)
+                continue
             rows = np.flatnonzero(h.triangle >= 0)
             k = h.triangle[rows]
             g, t = glob[k], h.t[rows]
-            if si:  # against what the soups before found (the first finds against nothing)
-                cur_t, cur_g = out.t[rows], out.triangle[rows]
-                take = (cur_g < 0) | (t < cur_t) | ((t == cur_t) & (g < cur_g))
-                rows, k, g, t = rows[take], k[take], g[take], t[take]
+            cur_t, cur_g = out.t[rows], out.triangle[rows]  # against what the soups before found
+            take = (cur_g < 0) | (t < cur_t) | ((t == cur_t) & (g < cur_g))
+            rows, k, g, t = rows[take], k[take], g[take], t[take]
             out.t[rows] = t
             out.triangle[rows] = g
             out.u[rows], out.v[rows] = h.u[rows], h.v[rows]
@@ -889,8 +920,14 @@ class Split:
             hi[rows] = np.minimum(hi[rows], t)
         if self.moving is None or m == 0:
             return out
-        hm = self.moving.trace(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo, np.maximum(hi, lo),
-                               **({} if slot is None else {"slot": slot}))
+        extra = {} if slot is None else {"slot": slot}
+        if self.soups:  # the first soup's trace validated these rays and their interval: not again
+            rays = Rays(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo.astype(F32),
+                        np.maximum(hi, lo).astype(F32), None, None, None, None)
+            hm = self.moving.trace_rays(rays, one_origin(o32), **extra)
+        else:
+            hm = self.moving.trace(np.broadcast_to(o32, (m, 3)), np.broadcast_to(d32, (m, 3)), lo, np.maximum(hi, lo),
+                                   **extra)
         mg = hm.triangle >= 0
         take = mg & ((out.triangle < 0) | (hm.t < out.t) | ((hm.t == out.t) & (hm.triangle.astype(np.int64) < out.triangle)))
         out.t[take] = hm.t[take]

@@ -301,6 +301,44 @@ def _interpolate(corners, tri, u, v):
     return w0[:, None] * c[:, 0] + u[:, None].astype(np.float64) * c[:, 1] + v[:, None].astype(np.float64) * c[:, 2]
 
 
+def _cast_hits(call, s, objects, names, inst, kind, materials, mats, mat_names, slot_, progress) -> CastResult:
+    """``cast(hits_=True)``: t and hit per ray, the per-hit fields for the hits only."""
+    m = call.m
+    t = np.empty(m, np.float32)
+    tri = np.empty(m, np.int32)
+    u = np.empty(m, np.float32)
+    v = np.empty(m, np.float32)
+    cols = [[] for _ in range(5)]  # object, instance, polygon, normal, material
+    tables = None
+    for a, b in call.chunks(progress):
+        h, kind = call.query(call.rays(a, b), flat=False, slot=None if slot_ is None else slot_[a:b])
+        k = h.triangle
+        t[a:b], tri[a:b] = h.t, k
+        if isinstance(h, core.InstanceHits):
+            got, (o_h, i_h, p_h, n_h, u_h, v_h) = s.decode(h, hits_only=True)
+            u[a:b], v[a:b] = h.u, h.v
+            u[got + a], v[got + a] = u_h, v_h
+            got_cols = (o_h, i_h, p_h, n_h) + ((s.decode_materials(h, hits_only=True),) if materials else ())
+        else:
+            if tables is None:
+                tables = s.per_triangle() + ((s.material_tables()[1],) if materials else ())
+            u[a:b], v[a:b] = h.u, h.v
+            kg = k[k >= 0]
+            got_cols = tuple(np.take(table, kg, axis=0) for table in tables)
+        for col, x in zip(cols, got_cols):
+            col.append(x)
+    if not cols[0]:  # no rays
+        cols = [[np.zeros(0, np.int32)]] * 3 + [[np.zeros((0, 3), np.float32)], [np.zeros(0, np.int32)]]
+    obj, ins, poly, normals, mat_index = (c[0] if len(c) == 1 else np.concatenate(c) if c else None for c in cols)
+    return CastResult(t=t, hit=tri >= 0, points=None, normals=normals.astype(np.float32, copy=False),
+                      objects=objects, object_names=names, object_index=obj.astype(np.int32, copy=False),
+                      instance_index=ins.astype(np.int32, copy=False), instance_matrices=inst.matrices,
+                      polygon_index=poly.astype(np.int32, copy=False), triangle=tri, u=u, v=v, structure=kind,
+                      smooth_normals=None, uv=None,
+                      material_index=mat_index.astype(np.int32, copy=False) if materials else None,
+                      materials=mats, material_names=mat_names, plan=s.plan, scene=s.describe())
+
+
 def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
     """(smooth normals (M, 3), UVs (M, 2)), float32, interpolated from the evaluated meshes'
     corners at (tri, u, v), NaN where tri is -1; None for what was not asked."""
@@ -323,7 +361,7 @@ def _corner_data(inst, tri, u, v, smooth: bool, uv: bool):
 def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, tmax=np.inf,
          selected_only: bool = False, samples: int | None = None, structure: str = "auto",
          smooth: bool = False, uv: bool = False, materials: bool = False, progress=None,
-         strict: bool = False, session_=None, slot_=None, points_=True) -> CastResult:
+         strict: bool = False, session_=None, slot_=None, points_=True, hits_=False) -> CastResult:
     """The nearest hit of every ray ``origins + t directions`` in the evaluated scene.
 
     origins, directions: (M, 3) or (3,) arrays, lists or tuples, world space; one origin
@@ -340,7 +378,11 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
     progress: called as progress(rays_done, rays_total) after each chunk.
     session_: internal (the sensor sweep): trace with this ``session.Session`` instead of the
         depsgraph's; slot_: (M,) each ray's instant for a sweep's session (``session.swept``);
-        points_=False: no ``points`` (None; a scan makes its own from its ranges).
+        points_=False: no ``points`` (None; a scan makes its own from its ranges);
+        hits_=True (with ``points_=False``, without ``smooth`` or ``uv``): ``normals``,
+        ``object_index``, ``instance_index``, ``polygon_index`` and ``material_index`` for
+        the hits only, in ray order (``np.flatnonzero(hit)``), neither filled for the misses
+        nor gathered back by the caller.
     strict: raise InvalidGeometry when an object has NaN or infinite vertex coordinates;
         by default its bad triangles are left out with one ``RuntimeWarning`` naming the
         object and the count, and the rest is traced (as ``scene.ray_cast`` does).
@@ -379,6 +421,10 @@ def cast(origins, directions, expected_rays=None, *, depsgraph=None, tmin=0.0, t
         mat_index = np.empty(m, np.int32)
     kind = call.structure if call.structure != "auto" else (s.chosen or "grid")
     tables = None
+    if hits_:
+        if smooth or uv or points_:
+            raise ValueError("hits_ gives no points, smooth normals or UVs")
+        return _cast_hits(call, s, objects, names, inst, kind, materials, mats, mat_names, slot_, progress)
     for a, b in call.chunks(progress):
         rays = call.rays(a, b)
         h, kind = call.query(rays, flat=not two_level, slot=None if slot_ is None else slot_[a:b])

@@ -570,56 +570,68 @@ class Session:
                 BOTTOMS[key] = acc
         return acc
 
-    def decode(self, h):
+    def decode(self, h, hits_only=False):
         """Per-hit (object index, instance index, polygon index, unit world normal, u, v)
         of a two-level trace's ``core.InstanceHits``, without the flat mesh: the normal is
         the object-space one turned by the inverse transpose of the instance's matrix (a
         soup's triangles have theirs in world space already), and a mirrored instance's u
-        and v trade places (the flat mesh swaps two corners there)."""
+        and v trade places (the flat mesh swaps two corners there).  Each (M,) with -1 / NaN
+        on a miss; ``hits_only``: (the hits' rows, then each for those rows only)."""
         poly_pool, normal_pool, base, inv, mirrored = self.layout.pools()
+        got = np.flatnonzero(h.instance >= 0)
+        i = np.take(h.instance, got)
+        at = np.take(base, i) + np.take(h.local_triangle, got)
+        obj_h = np.take(self.layout.instances.instance_object, i)
+        poly_h = np.take(poly_pool, at)
+        n_h = np.empty((len(got), 3), np.float32)
+        u_h, v_h = np.take(h.u, got), np.take(h.v, got)
+        soup = getattr(h, "soup", None)
+        flat = np.zeros(len(got), bool) if soup is None else np.take(soup, got) >= 0
+        if flat.any():  # a kept soup's world normals are made once with it, a rebuilt one's per hit
+            pos = np.flatnonzero(flat)
+            which = np.take(soup, got[pos])
+            for si in np.flatnonzero(np.bincount(which, minlength=len(h.soups))).tolist():
+                p = pos[which == si]
+                tri = np.take(h.soup_triangle, got[p])
+                acc = h.soups[si]
+                if getattr(acc, "_kept", False):
+                    if getattr(acc, "_normal_columns", None) is None:  # by columns: scattering rows of 3 costs more
+                        acc._normal_columns = np.ascontiguousarray(unit_normals(acc.mesh.tri_vertices).T)
+                    for c in range(3):
+                        n_h[p, c] = np.take(acc._normal_columns[c], tri)
+                else:
+                    n_h[p] = unit_normals(acc.mesh.tri_vertices[tri])
+        rest = np.flatnonzero(~flat)
+        if rest.size:
+            ir = i[rest]
+            w = np.einsum("mj,mjk->mk", normal_pool[at[rest]].astype(np.float64), inv[ir])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w /= np.linalg.norm(w, axis=1, keepdims=True)
+            n_h[rest] = w
+            swap = rest[mirrored[ir]]
+            u_h[swap], v_h[swap] = v_h[swap], u_h[swap].copy()
+        if hits_only:
+            return got, (obj_h, i, poly_h, n_h, u_h, v_h)
         m = len(h.instance)
         obj = np.full(m, -1, np.int32)
         ins = np.full(m, -1, np.int32)
         poly = np.full(m, -1, np.int32)
         n = np.full((m, 3), np.nan, np.float32)
         u, v = h.u.copy(), h.v.copy()
-        got = np.flatnonzero(h.instance >= 0)
-        i = h.instance[got]
-        at = base[i] + h.local_triangle[got]
-        obj[got] = self.layout.instances.instance_object[i]
-        ins[got] = i
-        poly[got] = poly_pool[at]
-        soup = getattr(h, "soup", None)
-        flat = np.zeros(len(got), bool) if soup is None else soup[got] >= 0
-        if flat.any():  # a kept soup's world normals are made once with it, a rebuilt one's per hit
-            rows = got[flat]
-            for si in np.flatnonzero(np.bincount(soup[rows], minlength=len(h.soups))).tolist():
-                r = rows[soup[rows] == si]
-                acc = h.soups[si]
-                if getattr(acc, "_kept", False):
-                    if getattr(acc, "_normals", None) is None:
-                        acc._normals = unit_normals(acc.mesh.tri_vertices)
-                    n[r] = np.take(acc._normals, h.soup_triangle[r], axis=0)  # rows: faster than indexing
-                else:
-                    n[r] = unit_normals(acc.mesh.tri_vertices[h.soup_triangle[r]])
-        rest = ~flat
-        if rest.any():
-            g, ir = got[rest], i[rest]
-            w = np.einsum("mj,mjk->mk", normal_pool[at[rest]].astype(np.float64), inv[ir])
-            with np.errstate(invalid="ignore", divide="ignore"):
-                w /= np.linalg.norm(w, axis=1, keepdims=True)
-            n[g] = w
-            swap = g[mirrored[ir]]
-            u[swap], v[swap] = h.v[swap], h.u[swap]
+        obj[got], ins[got], poly[got], n[got], u[got], v[got] = obj_h, i, poly_h, n_h, u_h, v_h
         return obj, ins, poly, n, u, v
 
-    def decode_materials(self, h) -> np.ndarray:
-        """(M,) int32 material index (into ``material_tables()[0]``) of two-level hits."""
+    def decode_materials(self, h, hits_only=False) -> np.ndarray:
+        """(M,) int32 material index (into ``material_tables()[0]``) of two-level hits, -1
+        on a miss; ``hits_only``: for the hits only, in ray order."""
         _, pool, base = self.layout.material_pool()
-        out = np.full(len(h.instance), -1, np.int32)
         got = np.flatnonzero(h.instance >= 0)
-        if len(pool) and len(base) and got.size:
-            out[got] = pool[base[h.instance[got]] + h.local_triangle[got]]
+        out_h = (np.take(pool, np.take(base, h.instance[got]) + h.local_triangle[got]).astype(np.int32)
+                 if len(pool) and len(base) and got.size else np.full(len(got), -1, np.int32))
+        if hits_only:
+            return out_h
+        out = np.full(len(h.instance), -1, np.int32)
+        out[got] = out_h
         return out
 
     def inherit(self, old: "Session"):

@@ -476,3 +476,29 @@ def test_a_job_that_says_its_calls_gives_the_lasting_parts_their_structure_at_on
     lines = [t for t, _ in part_lines(addon.settings.PARTS[scene.name])]
     assert any(t.startswith("BVH, flat: 1 placements, 8,000 triangles") for t in lines), lines
     assert any("BVH: 800k rays over its life" in t for t in lines), lines
+
+
+def test_a_hits_only_cast_gives_the_full_casts_fields_at_the_hits(fresh, addon):
+    """The scan's cast (``hits_``: per-hit fields for the hits only) against the full cast,
+    flat and on two levels, with a mirrored mover (its u and v trade places) and materials."""
+    scene, wave, _mover, _empty = _scene()
+    wave.modifiers.clear()
+    big = add_plane("Big", 3.0, z=0.5, location=(0.0, 0.0, 0.0), subdivisions=20)
+    big.scale.x = -1.0
+    for frame, x in ((1, 0.0), (20, 2.0)):
+        big.location.x = x
+        big.keyframe_insert("location", frame=frame)
+    query, session = addon.operators.query, addon.operators.session
+    o, d = _rays(300, seed=5)
+    for frame in (1, 2):
+        scene.frame_set(frame)
+        full = addon.api.cast(o, d, structure="bvh", materials=True)
+        part = query.cast(o, d, structure="bvh", materials=True, points_=False, hits_=True)
+        h = np.flatnonzero(full.hit)
+        assert part.points is None and len(h) > 50
+        for f in ("t", "hit", "triangle", "u", "v"):
+            assert np.array_equal(getattr(part, f), getattr(full, f)), f
+        for f in ("object_index", "instance_index", "polygon_index", "normals", "material_index"):
+            assert np.array_equal(getattr(part, f), getattr(full, f)[h]), f
+    forms = [p["form"] for p in session.get(bpy.context.evaluated_depsgraph_get()).describe()["parts"]]
+    assert "two levels" in forms, forms
