@@ -291,6 +291,9 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         name="References per Ray", description="Triangle references in those cells, on average (0 when the estimate "
         "came from the sample's time or no count model weighs references, so they were not counted)", min=0.0, precision=1)
     samples_traced: IntProperty(name="Samples Traced", description="Sample rays the grid's time per ray comes from", min=0)
+    no_sample_reason: StringProperty(
+        name="No Sample", description="Why the analysis traced no sample rays (empty when it did): too few rays for "
+        "any structure to pay back its build, or a sample that would cost more than a tenth of the rays' trace")
     grid_sample_ratio: FloatProperty(
         name="Batch Ratio", description="Calibrated ratio of the grid's time per ray on a large workload to its time "
         "per ray on this many sample rays (a small batch pays the traversal's fixed costs over few rays)",

@@ -54,13 +54,19 @@ from .factory import available_kinds, build, unavailable_reason
 from .decide.calfile import Calibration, load_default
 from .decide.cost import Cost, break_even
 from .decide.measurements import time_trace
-from .decide.rule import REUSES_SAMPLES, choose
-from .decide.work import DEFAULT_SAMPLES, grid_work, traversal_counts
+from .decide.rule import REUSES_SAMPLES, choose, settle_bound, unsampled
+from .decide.work import SAMPLE_COST_SHARE, DEFAULT_SAMPLES, grid_work, sample_count, traversal_counts
 from .hits import Hits
 from .mesh import TriangleMesh
 
 #: default rays per batch in the online mode
 DEFAULT_BATCH = 1 << 15
+
+
+#: ``Plan.no_sample``'s words
+NO_SAMPLE_FLOOR = "too few rays for any structure to pay back its build"
+NO_SAMPLE_DEAR = (f"a sample would cost more than {SAMPLE_COST_SHARE:.0%} of the rays' trace: the calibration's "
+                  f"estimates decided")
 
 
 def _check_expected(expected_rays) -> float:
@@ -127,6 +133,8 @@ class Plan:
     break_even_ceiling: float = math.inf
     #: words when the break-even is ill-conditioned (``conditioning``), else ''
     ill_conditioned: str = ""
+    #: why a plan that built the grid traced no sample ('' when it did): NO_SAMPLE_FLOOR or NO_SAMPLE_DEAR
+    no_sample: str = ""
     estimate_time: float = 0.0
     plan_time: float = 0.0
     grid_reused: bool = False
@@ -169,7 +177,7 @@ class Plan:
             "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
             "grid_terms": list(self.grid_terms), "break_even_floor": self.break_even_floor,
             "grid_built": self.grid_built, "break_even_ceiling": _json_float(self.break_even_ceiling),
-            "ill_conditioned": self.ill_conditioned,
+            "ill_conditioned": self.ill_conditioned, "no_sample": self.no_sample,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
             "calibration_source": self.calibration_source, "notes": list(self.notes),
@@ -446,7 +454,7 @@ def plan(
     unavailable = {k: why for k in kinds if (why := unavailable_reason(k))}
     kinds, skipped = available_kinds(kinds)
     notes += skipped
-    k = max(1, int(samples))
+    k = sample_count(samples, _check_expected(expected_rays))
     if grid is not None and getattr(grid, "mesh", None) is not mesh:
         raise ValueError("the grid passed to plan() was built over another mesh")
     cands = [kk for kk in kinds if kk != "grid" and kk in calibration.fits]
@@ -465,7 +473,7 @@ def plan(
     else:
         reused = True
     t1 = time.perf_counter()
-    sample, idx = None, None
+    sample, idx, grid_fig = None, None, None
     per_ray = {}
     if floor and _check_expected(expected_rays) <= floor:
         # too few rays for any structure to pay back its build on this calibration's
@@ -477,6 +485,19 @@ def plan(
         notes.append(f"{float(expected_rays):,.0f} expected rays are below the calibration's floor on the break-even "
                      f"({floor:,.0f}): the grid wins without sampling; its time per ray and the gains are the "
                      f"calibration's extremes")
+    elif prior and mesh.triangle_count and cands and not sample_pays(calibration, samples, expected_rays) \
+            and (gq := calibration.grid_estimate(mesh.triangle_count)) is not None:
+        # the sample would cost more than SAMPLE_COST_SHARE of the workload's own grid trace:
+        # the calibration's estimates for N decide, leaning to the grid already built
+        g_fig, costs = unsampled(gq, {kk: calibration.estimate(kk, mesh.triangle_count) for kk in cands})
+        k, what, t_sample = 0, "none", g_fig
+        grid_fig = (g_fig, gq.per_ray_low, gq.per_ray_high)
+        per_ray = {kk: (c.per_ray, calibration.estimate(kk, mesh.triangle_count).per_ray_low, c.per_ray)
+                   for kk, c in costs.items()}
+        notes.append(f"a sample for {float(expected_rays):,.0f} rays would cost more than "
+                     f"{SAMPLE_COST_SHARE:.0%} of their trace: decided on the calibration's estimates for "
+                     f"{mesh.triangle_count:,} triangles (the grid's time per ray at its low end, the candidates' "
+                     f"at their high end)")
     elif mesh.triangle_count:
         o, d, tmin, tmax, what, idx = _sample_rays(mesh, rays, k, seed)
         counted = getattr(grid, "traversal_work", None)
@@ -488,7 +509,7 @@ def plan(
     else:
         k, t_sample, what = 0, 0.0, "none"
     ratio, ratio_lo, ratio_hi = calibration.grid_sample_ratio(k) if k else (1.0, 1.0, 1.0)
-    g, g_lo, g_hi = t_sample * ratio, t_sample * ratio_lo, t_sample * ratio_hi
+    g, g_lo, g_hi = grid_fig or (t_sample * ratio, t_sample * ratio_lo, t_sample * ratio_hi)
     work = None
     if k and calibration.counts.get("grid") is not None:
         # counts instead of the sample's time: the same rays through the same grid give the
@@ -503,6 +524,8 @@ def plan(
                           answered=k if idx is not None else 0, per_ray=per_ray, unavailable=unavailable,
                           notes=notes, floor=floor)
     p.grid_sample_per_ray = t_sample if k else 0.0
+    if not k and mesh.triangle_count:
+        p.no_sample = NO_SAMPLE_DEAR if grid_fig is not None else NO_SAMPLE_FLOOR
     p.grid_sample_ratio = ratio if work is None else (g / t_sample if t_sample > 0 else 1.0)
     p.work = work
     if work is not None:
@@ -530,6 +553,16 @@ def plan(
     return p
 
 
+def sample_pays(calibration: Calibration, samples: int, expected_rays) -> bool:
+    """Whether the K = ``sample_count`` rays a plan samples for ``expected_rays`` cost at most
+    SAMPLE_COST_SHARE of the workload's own trace through the grid: K t_K <= share R t_G,
+    with t_K = t_G / ratio(K) the calibration's time per ray of a K-ray batch
+    (``Calibration.grid_sample_ratio``; N's own time per ray cancels)."""
+    r = float(expected_rays)
+    k = sample_count(samples, r)
+    return k / max(calibration.grid_sample_ratio(k)[0], 1e-9) <= SAMPLE_COST_SHARE * r
+
+
 def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, unavailable, notes) -> Plan | None:
     """The plan when the calibration alone settles it for a hierarchical structure H: the
     expected rays pass the calibration's ceiling on the break-even against the H with the
@@ -541,24 +574,28 @@ def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, u
     est = {kk: calibration.estimate(kk, n) for kk in cands}
     best = min(est, key=lambda kk: (est[kk].build_time + r * est[kk].per_ray, kk))
     ceiling = pri.ceiling.get(best)
-    if ceiling is None or r < ceiling:
+    if ceiling is None:
+        return None
+    bound = settle_bound(calibration.grid_estimate(n), est[best], ceiling)
+    if r < bound:
         return None
     g = est[best].per_ray + pri.gain_low[best]
     p = plan_from_timings(n, r, calibration, 0.0, g, kinds=kinds, samples=0, unavailable=unavailable,
                           notes=list(notes) + [
-                              (f"{r:,.0f} expected rays are above the calibration's ceiling on the rays from which "
-                               f"building {best} beats building the grid ({ceiling:,.0f})" if ceiling > 0 else
-                               f"{best} built faster and traced faster than the grid on every calibration scene")
+                              (f"{r:,.0f} expected rays are above the rays from which building {best} beats building "
+                               f"the grid on the calibration's estimates for {n:,} triangles ({bound:,.0f})" if bound > 0
+                               else f"{best} builds faster than the grid and traces faster on the calibration's "
+                                    f"estimates for {n:,} triangles")
                               + f": {best} without a grid or a sample; the grid's figures are the calibration's"],
                           floor=pri.floor)
     # the rule weighs the grid's build as sunk; here nothing is built yet, and the ceiling
     # bounds the rays from which building ``best`` beats building the grid
     p.decision, p.certain = best.upper(), True
     p.grid_built = False
-    p.break_even_ceiling = float(ceiling)
+    p.break_even_ceiling = float(bound)
     # what the calibration alone says of the break-even: between its floor and its ceiling
     # (its estimate for N, extrapolated far from the calibration's sizes, may fall outside)
-    p.break_even_low, p.break_even_high = min(pri.floor, float(ceiling)), float(ceiling)
+    p.break_even_low, p.break_even_high = min(pri.floor, float(bound)), float(bound)
     p.break_even = min(max(p.break_even, p.break_even_low), p.break_even_high)
     p.grid_sample_per_ray = 0.0
     return p

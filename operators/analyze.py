@@ -103,6 +103,7 @@ def store_results(props, record):
     props.grid_build_time = st["grid"]["build_time"]
     props.grid_per_ray = st["grid"]["per_ray"]
     props.samples_traced = record["plan"]["samples"]
+    props.no_sample_reason = record["plan"].get("no_sample", "")
     props.grid_built = record["plan"].get("grid_built", True)
     props.break_even_warning = record["plan"].get("ill_conditioned", "")
     props.break_even_ceiling = min(record["plan"].get("break_even_ceiling") or 0.0, NEVER)

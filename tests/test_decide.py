@@ -16,6 +16,7 @@ import pytest
 
 from hybrid_raycast.core.decide import cost, rule
 from hybrid_raycast.core.decide import evaluate as ev
+from hybrid_raycast.core.decide.work import SAMPLE_COST_SHARE, SAMPLE_MIN, SAMPLE_SHARE, sample_count
 from hybrid_raycast.core.plan import plan_from_timings
 from hybrid_raycast.core.decide import Calibration, KindFit, Measurement, SceneRecord
 
@@ -490,6 +491,7 @@ def test_prior_floor_is_the_margin_times_lowest_build_over_largest_gain_on_exact
 
 def test_a_plan_below_the_floor_keeps_the_grid_without_a_sample_and_samples_above_it():
     from hybrid_raycast.core import plan, scenes as S
+    from hybrid_raycast.core.plan import NO_SAMPLE_DEAR, NO_SAMPLE_FLOOR
 
     recs = _lawful_records()
     cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
@@ -499,9 +501,25 @@ def test_a_plan_below_the_floor_keeps_the_grid_without_a_sample_and_samples_abov
     below = plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000)
     assert (below.samples, below.decision, below.break_even_floor) == (0, "GRID", floor)
     assert below.break_even >= floor / cost.FLOOR_MARGIN * (1 - 1e-9)
-    above = plan(mesh, floor * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
-    assert above.samples == 2000
-    assert plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000, prior=False).samples == 2000
+    # above the floor, while a sample would cost more than SAMPLE_COST_SHARE of the rays' trace
+    # (this calibration times no small batches: a sample's rays cost what the workload's do),
+    # the calibration's estimates for N decide
+    dear = plan(mesh, floor * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
+    assert floor * 1.1 < SAMPLE_MIN / SAMPLE_COST_SHARE and dear.samples == 0 and dear.grid_built
+    assert dear.no_sample == NO_SAMPLE_DEAR and below.no_sample == NO_SAMPLE_FLOOR and dear.to_dict()["no_sample"]
+    assert "would cost more than 10% of their trace" in " ".join(dear.notes)
+    assert dear.grid_per_ray == pytest.approx(cal.grid_estimate(mesh.triangle_count).per_ray_low)
+    r = SAMPLE_MIN / SAMPLE_COST_SHARE * 1.01
+    above = plan(mesh, r, cal, kinds=("grid", "bvh"), samples=2000, grid=dear.grid)  # a grid built: nothing settles
+    assert above.samples == sample_count(2000, r) == SAMPLE_MIN  # the sample is cut to a share of the rays
+    assert above.no_sample == ""
+    assert plan(mesh, floor * 0.9, cal, kinds=("grid", "bvh"), samples=2000, prior=False).samples == SAMPLE_MIN
+
+
+def test_a_plans_sample_is_at_most_a_share_of_its_rays_and_never_below_its_least():
+    assert sample_count(16384, 1e6) == 16384 and sample_count(16384, 1e8) == 16384
+    assert sample_count(16384, 100_000) == int(SAMPLE_SHARE * 100_000) < 16384
+    assert sample_count(16384, 3_000) == SAMPLE_MIN == 1024 and sample_count(200, 3_000) == 200
 
 
 def test_the_evaluated_hybrid_pays_no_estimate_below_the_floor():
@@ -539,7 +557,14 @@ def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():
     recs = _lawful_records()
     cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
     mesh = S.torus(3000)
-    ceiling = cal.prior(mesh.triangle_count, ("bvh",)).ceiling["bvh"]
+    n = mesh.triangle_count
+    # the bound: the rays from which building the BVH beats building the grid on the
+    # calibration's estimates for N (the grid's at their low end), under the ceiling over its scenes
+    ceiling = rule.settle_bound(cal.grid_estimate(n), cal.estimate("bvh", n), cal.prior(n, ("bvh",)).ceiling["bvh"])
+    grid = cal.grid_estimate(n)
+    assert 0 < ceiling == pytest.approx((cal.estimate("bvh", n).build_time - grid.build_low)
+                                        / (grid.per_ray_low - cal.estimate("bvh", n).per_ray))
+    assert ceiling < cal.prior(n, ("bvh",)).ceiling["bvh"]
     above = plan(mesh, ceiling * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
     assert (above.grid_built, above.grid, above.samples, above.decision) == (False, None, 0, "BVH")
     assert above.break_even_ceiling == pytest.approx(ceiling) and above.break_even_high == pytest.approx(ceiling)
@@ -552,7 +577,7 @@ def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():
     hits = above.trace(*uniform_rays(mesh, 500, seed=1)[:2])  # it builds its BVH and traces
     assert above.executed[0]["kind"] == "bvh" and hits.hit.any()
     below = plan(mesh, ceiling * 0.9, cal, kinds=("grid", "bvh"), samples=2000)
-    assert below.grid_built and below.grid is not None and below.samples == 2000
+    assert below.grid_built and below.grid is not None and below.samples == 0  # too few rays for a sample: the estimates for N decide
     assert plan(mesh, ceiling * 1.1, cal, kinds=("grid", "bvh"), samples=2000, prior=False).grid_built
 
 
@@ -959,3 +984,17 @@ def test_interval_coverage_counts_the_scenes_whose_interval_holds_r_c_and_the_op
                               extra={"break_even_low": lo, "break_even_high": hi})
     got = ev.interval_coverage([scene(10_000, 30_000), scene(10_000, None), scene(30_000, 40_000), scene(1, 2_000)])
     assert got == {"scenes": 4, "held": 2, "percent": 50.0, "never_above": 1}
+
+
+def test_the_evaluated_hybrid_settles_where_the_plan_does_on_the_estimates_for_n():
+    """With the calibration's grid estimate for N, the evaluation builds no grid from the same
+    bound as ``plan._settled_without_grid`` (``rule.settle_bound``), below the ceiling."""
+    grid_est = cost.Cost("grid", 0.012, 0.01, 0.014, 1.2e-6, 1e-6, 1.4e-6)
+    s = ev.SceneResult("x", 1000, 10, cost.Cost.point("grid", 0.01, 1e-6), costs_of(bvh=(0.02, 1e-7)),
+                       costs_of(bvh=(0.02, 1e-7)), 1e-6, 0.005, 100, ceiling={"bvh": 1e5},
+                       prior_estimated={**costs_of(bvh=(0.03, 2e-7)), "grid": grid_est})
+    bound = rule.settle_bound(grid_est, s.prior_estimated["bvh"], 1e5)
+    assert bound == pytest.approx((0.03 - 0.01) / (1e-6 - 2e-7)) == pytest.approx(25_000)
+    settled, pick = ev.settled_without_grid(s, [24_000, 26_000, 2e5])
+    assert settled.tolist() == [False, True, True] and set(pick) == {"bvh"}
+    assert rule.settle_bound(None, s.prior_estimated["bvh"], 1e5) == 1e5  # no grid estimate: the ceiling

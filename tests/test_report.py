@@ -86,7 +86,8 @@ def test_strategy_totals_on_known_numbers():
     assert list(t["choice"]) == ["grid", "bvh"]
 
 
-def test_hybrid_with_samples_from_the_workload_skips_the_estimate_below_k_rays():
+def test_hybrid_with_samples_from_the_workload_skips_the_estimate_below_k_rays(monkeypatch):
+    monkeypatch.setattr(evaluate, "sample_count", lambda k, r: k)  # K fixed: the arithmetic (the cut by R apart)
     s = scene()
     s.samples = 2_000_000
     t = evaluate.strategy_totals(s, [1e6, 1e7], batch=1)["hybrid_reuse"]
@@ -94,7 +95,8 @@ def test_hybrid_with_samples_from_the_workload_skips_the_estimate_below_k_rays()
     np.testing.assert_allclose(t, [2.0, 1.0 + 0.1 + 2.0 + 8e6 * 0.5e-6])
 
 
-def test_reuse_totals_are_the_arithmetic_of_the_kept_samples():
+def test_reuse_totals_are_the_arithmetic_of_the_kept_samples(monkeypatch):
+    monkeypatch.setattr(evaluate, "sample_count", lambda k, r: k)  # K fixed: the arithmetic (the cut by R apart)
     s = scene(overhead=0.1)  # R_est = R_C = 4e6
     s.samples, s.reuse_estimate_time = 100_000, 0.15
     t = evaluate.strategy_totals(s, [5e4, 1e6, 1e7], batch=1)
@@ -108,7 +110,8 @@ def test_reuse_totals_are_the_arithmetic_of_the_kept_samples():
     assert evaluate.estimate_cost_percent(s, 1e6) == pytest.approx(100 * 0.1 / 2.0)
 
 
-def test_reuse_keeps_the_grid_when_it_answered_everything_while_planning():
+def test_reuse_keeps_the_grid_when_it_answered_everything_while_planning(monkeypatch):
+    monkeypatch.setattr(evaluate, "sample_count", lambda k, r: k)  # K fixed: the arithmetic (the cut by R apart)
     s = scene(est=(0.01, 0.5e-6))  # R_est = 0.01 / 0.5e-6 = 2e4
     s.samples = 100_000
     t = evaluate.strategy_totals(s, [1e4, 5e4], batch=1)
@@ -116,6 +119,46 @@ def test_reuse_keeps_the_grid_when_it_answered_everything_while_planning():
     # ray up to K was answered while planning, so nothing is built
     assert list(t["choice"]) == ["grid", "bvh"] and list(t["choice_reuse"]) == ["grid", "grid"]
     np.testing.assert_allclose(t["hybrid_reuse"], [1.0 + 0.01, 1.0 + 0.05])
+
+
+def test_the_hybrid_prices_the_fewer_samples_a_plan_takes_for_fewer_rays():
+    """For R below K / SAMPLE_SHARE the plan samples SAMPLE_SHARE R rays: the evaluation takes
+    that plan's estimate cost and estimates (``at_samples``), not the full sample's."""
+    from hybrid_raycast.core.decide.work import SAMPLE_SHARE, sample_count
+
+    s = scene(overhead=0.1)
+    s.samples, s.reuse_estimate_time = 16384, 0.12
+    k = sample_count(16384, 1e5)
+    assert k == int(SAMPLE_SHARE * 1e5) < 16384
+    s.at_samples = {k: {"grid_per_ray": s.grid_estimate_per_ray, "estimated": dict(s.estimated),
+                        "estimate_time": 0.01, "reuse_estimate_time": 0.02}}
+    t = evaluate.strategy_totals(s, [1e5, 1e7], batch=1)
+    assert t["hybrid"][0] == pytest.approx(1.0 + 0.01 + 1e5 * 1e-6)  # the grid kept, the small sample's cost
+    assert t["hybrid_reuse"][0] == pytest.approx(1.0 + 0.02 + (1e5 - k) * 1e-6)
+    assert t["hybrid"][1] == pytest.approx(1.0 + 0.1 + 2.0 + 5.0)  # the full sample for 1e7 rays
+    # the small sample's own estimates decide for its rays
+    s.at_samples[k]["estimated"] = {"bvh": Cost.point("bvh", 1e-3, 0.5e-6), **{kk: c for kk, c in s.estimated.items()
+                                                                              if kk != "bvh"}}
+    assert evaluate.hybrid_choice(s, [1e5, 1e7]).tolist() == ["bvh", "bvh"]
+    assert evaluate.hybrid_choice(s, [1e5])[0] == "bvh" != evaluate.hybrid_choice(scene(overhead=0.1), [1e5])[0]
+
+
+def test_the_hybrid_decides_without_a_sample_where_one_would_cost_too_much():
+    """Above the floor and up to ``unsampled_below`` the plan takes no sample: the hybrid pays
+    the grid and its choice, made by ``rule.unsampled`` on the estimates for N (the grid at its
+    low end, the BVH at its high end), and no estimate."""
+    s = scene(overhead=0.1)
+    s.samples, s.unsampled_below, s.floor = 16384, 5e5, 1e3
+    s.prior_estimated = {"grid": Cost("grid", 1.0, 0.9, 1.1, 1e-6, 0.9e-6, 1.1e-6),
+                         "bvh": Cost("bvh", 0.2, 0.2, 0.2, 0.5e-6, 0.4e-6, 0.6e-6)}
+    # unsampled: BVH if 0.2 + R 0.6e-6 < R 0.9e-6, i.e. from R = 0.2 / 0.3e-6 = 666,667: the grid up to 5e5
+    t = evaluate.strategy_totals(s, [5e2, 2e5, 1e6], batch=1)
+    assert list(t["choice"][:2]) == ["grid", "grid"] and list(t["choice_reuse"][:2]) == ["grid", "grid"]
+    assert t["hybrid"][1] == pytest.approx(1.0 + 2e5 * 1e-6) == t["hybrid_reuse"][1]  # no estimate paid
+    assert evaluate.unsampled_rays(s, [5e2, 2e5, 1e6]).tolist() == [False, True, False]
+    s.prior_estimated["bvh"] = Cost("bvh", 0.01, 0.01, 0.01, 0.5e-6, 0.4e-6, 0.6e-6)  # now 0.01 / 0.3e-6 = 33,333
+    t = evaluate.strategy_totals(s, [2e5], batch=1)
+    assert t["choice"][0] == "bvh" and t["hybrid"][0] == pytest.approx(1.0 + 2.0 + 2e5 * 0.5e-6)
 
 
 def test_embree_retraces_the_sample_rays():

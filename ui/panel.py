@@ -168,7 +168,7 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
         else:
             col.label(text=f"Grid: build {_secs(props.grid_build_time)}, {_secs(props.grid_per_ray)}/ray")
             if props.samples_traced == 0:
-                col.label(text="  (no sample: too few rays for any structure to pay back its build)")
+                col.label(text=f"  (no sample: {props.no_sample_reason or 'too few rays for any structure to pay back its build'})")
             elif props.grid_steps_per_ray > 0:
                 col.label(text=f"  (work counts of {props.samples_traced:,} sample rays: {props.grid_steps_per_ray:.1f} "
                                f"steps, {props.grid_candidates_per_ray:.1f} candidates/ray)")

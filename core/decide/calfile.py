@@ -25,6 +25,7 @@ import numpy as np
 from ..atomic import atomic_path
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, CountFit, KindFit, Measurement, SceneRecord,
                    Prior, describe_fit, fit, fit_counts, grid_estimate, grid_laws, prior)
+from .cost import COUNT_FALLBACK, COUNT_TERMS
 
 #: bump when the JSON layout or the meaning of a field changes.  3: constants
 #: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
@@ -122,6 +123,8 @@ class Calibration:
     counts: dict = field(default_factory=dict)
     #: (the scenes list, ``cost.grid_laws`` of it): the grid's laws, fitted on first use
     _grid_laws: tuple | None = field(default=None, repr=False, compare=False)
+    #: {(the scenes list's id and length, K): ``grid_sample_ratio(K)``}, made on first use
+    _ratios: dict | None = field(default=None, repr=False, compare=False)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -150,6 +153,9 @@ class Calibration:
         time per ray, the more so the smaller K.  (1, 1, 1)
         when the calibration holds no grid samples.
         """
+        key = (id(self.scenes), len(self.scenes), int(k))
+        if self._ratios is not None and key in self._ratios:  # percentiles over the scenes: made once per K
+            return self._ratios[key]
         ladder = sorted({kk for r in self.scenes for kk in r.grid_samples})
         if not ladder:
             return 1.0, 1.0, 1.0
@@ -162,6 +168,7 @@ class Calibration:
         x = np.log2(np.asarray(ladder, np.float64))
         xk = math.log2(max(int(k), 1))
         lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
+        self._ratios = {**(self._ratios or {}), key: (med, lo, hi)}
         return med, lo, hi
 
     def uses_term(self, name: str) -> bool:
@@ -208,6 +215,7 @@ class Calibration:
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("_grid_laws")
+        d.pop("_ratios")
         d["spread"] = list(self.spread)
         return d
 
@@ -253,6 +261,14 @@ class Calibration:
             raise CalibrationError(f"malformed calibration data ({type(e).__name__}: {e})") from None
         if model not in MODELS:
             raise CalibrationError(f"unknown model {model!r} (this package knows {', '.join(MODELS)})")
+        stale = [k for k, f in cal.counts.items() if f.terms not in (COUNT_TERMS.get(k, f.terms), COUNT_FALLBACK.get(k))]
+        new = fit_counts(cal.scenes, tuple(stale), cal.spread) if stale else {}
+        if new:
+            # count models of another package version, fitted again on the file's own records
+            # (no new timing) where they hold the counts this package's terms weigh
+            cal.counts.update(new)
+            cal.notes.append(f"count models of {', '.join(sorted(new))} refitted on the file's records with this "
+                             f"package's terms")
         if not fits:
             raise CalibrationError("no fitted constants in the file")
         for k, f in fits.items():

@@ -52,14 +52,14 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from ..factory import build
-from ..plan import plan
+from ..plan import plan, sample_pays
 from ..rays import uniform_rays
 from .calfile import Calibration
 from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, KindFit, affine_lsq, SceneRecord, break_even, log2n, nlog2n
 from .measurements import ONE_THREAD, time_trace
 from .truth import break_even_jobs, measure_break_evens
-from .rule import REUSES_SAMPLES, choose
-from .work import DEFAULT_SAMPLES
+from .rule import REUSES_SAMPLES, choose, settle_bound, unsampled
+from .work import DEFAULT_SAMPLES, sample_count
 
 #: the ray counts of the speedup tables: 1e3 to 1e8, four points a decade
 RAY_COUNTS = np.logspace(3, 8, 21)
@@ -104,6 +104,14 @@ class SceneResult:
     #: the plan builds no grid and takes that kind (``Plan.grid_built``)
     ceiling: dict = field(default_factory=dict)
     prior_estimated: dict = field(default_factory=dict)
+    #: {K: the plan's figures with K samples}, for the smaller samples a plan takes for fewer
+    #: expected rays (``work.sample_count``): 'grid_per_ray', 'estimated' ({kind: Cost}),
+    #: 'estimate_time' and 'reuse_estimate_time', as the fields of the same names for ``samples``
+    at_samples: dict = field(default_factory=dict)
+    #: for more rays than ``floor`` and at most these, the plan takes no sample (it would cost
+    #: more than SAMPLE_COST_SHARE of the rays' trace: ``plan.sample_pays``) and decides on the
+    #: calibration's estimates for N (``prior_estimated``, ``rule.unsampled``); 0: never
+    unsampled_below: float = 0.0
 
     @property
     def grid_sample_ratio(self) -> float | None:
@@ -122,7 +130,25 @@ class SceneResult:
         d["measured"] = {k: Cost.from_dict(v, k) for k, v in d["measured"].items()}
         d["estimated"] = {k: Cost.from_dict(v, k) for k, v in d["estimated"].items()}
         d["prior_estimated"] = {k: Cost.from_dict(v, k) for k, v in d.get("prior_estimated", {}).items()}
+        d["at_samples"] = {int(k): dict(v, estimated={kk: Cost.from_dict(c, kk) for kk, c in v["estimated"].items()})
+                           for k, v in d.get("at_samples", {}).items()}
         return cls(**d)
+
+    def at(self, k: int) -> tuple:
+        """(grid time per ray, {kind: estimated Cost}, estimate time, reuse estimate time) of
+        the plan with ``k`` samples: ``at_samples``' figures, or this result's own for its K."""
+        a = self.at_samples.get(int(k))
+        if a is None:
+            return (self.grid_estimate_per_ray, self.estimated, self.estimate_time,
+                    self.estimate_time if self.reuse_estimate_time is None else self.reuse_estimate_time)
+        return a["grid_per_ray"], a["estimated"], a["estimate_time"], a["reuse_estimate_time"]
+
+    def samples_for(self, rays) -> np.ndarray:
+        """(R,) the samples the plan takes for each ray count (``work.sample_count``)."""
+        r = np.atleast_1d(np.asarray(rays, np.float64))
+        if not self.samples:  # a plan that took no sample
+            return np.zeros(len(r), np.int64)
+        return np.array([sample_count(self.samples, x) for x in r], np.int64)
 
 
 # -- break-even and its error -------------------------------------------------------------------
@@ -220,11 +246,37 @@ def error_summary(errors) -> dict:
 
 # -- strategies over ray counts ----------------------------------------------------------------
 
+def _by_samples(s: SceneResult, rays, kinds, reuse: bool) -> np.ndarray:
+    """``rule.choose`` for each ray count on the estimates of the plan with the samples it
+    takes for that count (``SceneResult.at``); ``reuse``: those samples are of the workload."""
+    r = np.atleast_1d(np.asarray(rays, np.float64))
+    ks = s.samples_for(r)
+    out = np.empty(len(r), dtype=object)
+    for k in np.unique(ks).tolist():
+        sel = ks == k
+        g, estimated, _, _ = s.at(k)
+        est = {kk: estimated[kk] for kk in kinds if kk in estimated}
+        out[sel] = choose(r[sel], g, est, answered=k if reuse else 0, floor=s.floor)
+    u = unsampled_rays(s, r)
+    if u.any():
+        grid = s.prior_estimated.get("grid")
+        est = {kk: s.prior_estimated[kk] for kk in kinds if kk in s.prior_estimated}
+        out[u] = choose(r[u], *unsampled(grid, est), floor=s.floor) if grid is not None and est else "grid"
+    return out
+
+
+def unsampled_rays(s: SceneResult, rays) -> np.ndarray:
+    """(R,) bool: the ray counts the plan decides for without a sample, on the calibration's
+    estimates for N (above the floor, at most ``SceneResult.unsampled_below``)."""
+    r = np.atleast_1d(np.asarray(rays, np.float64))
+    return (r <= s.unsampled_below) & (r > s.floor)
+
+
 def hybrid_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision for each ray count (array of names), K samples apart from the
-    workload: ``rule.choose`` on the estimated costs."""
-    est = {k: s.estimated[k] for k in kinds if k in s.estimated}
-    return choose(rays, s.grid_estimate_per_ray, est, floor=s.floor)
+    workload: ``rule.choose`` on the estimated costs of the plan with the samples it takes
+    for that count."""
+    return _by_samples(s, rays, kinds, False)
 
 
 def online_switch(s: SceneResult, kind: str = "bvh", batch: int = 1 << 15) -> float:
@@ -263,15 +315,15 @@ def settled_without_grid(s: SceneResult, rays, kinds=("bvh",)) -> tuple[np.ndarr
     names = sorted(est)
     totals = np.stack([est[k].build_time + r * est[k].per_ray for k in names])
     pick = np.asarray(names, dtype=object)[np.argmin(totals, axis=0)]
-    bound = np.array([s.ceiling.get(k, math.inf) for k in pick], np.float64)
-    return r >= bound, pick
+    grid = s.prior_estimated.get("grid")
+    bounds = {k: settle_bound(grid, est[k], s.ceiling[k]) if k in s.ceiling else math.inf for k in names}
+    return r >= np.array([bounds[k] for k in pick], np.float64), pick
 
 
 def hybrid_reuse_choice(s: SceneResult, rays, kinds=("bvh",)) -> np.ndarray:
     """The plan's decision when its K samples are K of the workload's R rays:
-    ``rule.choose`` with ``answered=K``."""
-    est = {k: s.estimated[k] for k in kinds if k in s.estimated}
-    return choose(rays, s.grid_estimate_per_ray, est, answered=s.samples, floor=s.floor)
+    ``rule.choose`` with ``answered=K``, K the samples it takes for R."""
+    return _by_samples(s, rays, kinds, True)
 
 
 def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]:
@@ -283,22 +335,31 @@ def hybrid_totals(s: SceneResult, rays, kinds=("bvh",)) -> dict[str, np.ndarray]
     (``hybrid_reuse_choice``): ``T_B^G + e' + C(R - K)`` where the choice keeps the
     sample's answers (grid, numpy BVH), ``T_B^G + e' + C(R)`` otherwise; when R <= K the
     grid answers all while planning, ``T_B^G + R t_G``.  C is the true cost of the choice
-    (its build included, the grid's sunk) and e' the estimate's cost with workload samples.
+    (its build included, the grid's sunk) and e' the estimate's cost with workload samples;
+    K, e, e' and the estimates behind each choice are the plan's with the samples it takes
+    for R (``work.sample_count``, ``SceneResult.at``).
     Where the calibration alone settles the plan (``settled_without_grid``), both are the
-    settled kind's true total, with no grid and no estimate.
+    settled kind's true total, with no grid and no estimate; where a sample would cost too
+    much (``unsampled_rays``), ``T_B^G + C(R)`` with the choice made on the calibration's
+    estimates for N.
     """
     r = np.atleast_1d(np.asarray(rays, np.float64))
     kinds = [k for k in kinds if k in s.measured]
     choice = hybrid_choice(s, r, kinds)
     reuse = hybrid_reuse_choice(s, r, kinds)
-    k = float(s.samples)
-    e_reuse = s.estimate_time if s.reuse_estimate_time is None else s.reuse_estimate_time
+    ks = s.samples_for(r)
+    k = ks.astype(np.float64)
+    u = unsampled_rays(s, r)  # no sample: no estimate to pay for, no workload rays answered
+    e = np.where(u, 0.0, [s.at(x)[2] for x in ks.tolist()])
+    e_reuse = np.where(u, 0.0, [s.at(x)[3] for x in ks.tolist()])
+    k = np.where(u, 0.0, k)
     rest = np.where(np.isin(reuse, REUSES_SAMPLES), np.maximum(r - k, 0.0), r)
     below = r <= s.floor  # the plan keeps the grid without sampling: no estimate to pay for
     settled, pick = settled_without_grid(s, r, kinds)
     alone = chosen_cost(s, pick, r)  # no grid: the pick's build and rays only
-    hybrid = np.where(below, s.grid.total_time(r), s.grid.build_time + s.estimate_time + chosen_cost(s, choice, r))
-    hybrid_reuse = np.where((r <= k) | below, s.grid.total_time(r), s.grid.build_time + e_reuse + chosen_cost(s, reuse, rest))
+    hybrid = np.where(below, s.grid.total_time(r), s.grid.build_time + e + chosen_cost(s, choice, r))
+    hybrid_reuse = np.where(((r <= k) & ~u) | below, s.grid.total_time(r),
+                            s.grid.build_time + e_reuse + chosen_cost(s, reuse, rest))
     return {
         "hybrid": np.where(settled, alone, hybrid),
         "hybrid_reuse": np.where(settled, alone, hybrid_reuse),
@@ -716,14 +777,24 @@ def measure_scene(name, group, mesh, cal: Calibration, kinds, be=None, *, rays: 
     # the same plan again with other sample rays: how far the estimate moves between runs
     again = [plan(mesh, COST_AT, cal, samples=samples, grid=p.grid, kinds=candidates, seed=seed + 10 + r)
              for r in range(plan_repeats - 1)]
+    # the plans with the fewer samples a plan takes for fewer rays, each as the add-on runs it
+    at_samples = {}
+    for kk in sorted({sample_count(samples, x) for x in RAY_COUNTS} - {p.samples}):
+        q = plan(mesh, COST_AT, cal, samples=kk, grid=p.grid, kinds=candidates, seed=seed + 1, prior=False)
+        qw = plan(mesh, COST_AT, cal, rays=(o, d), samples=kk, grid=p.grid, kinds=candidates, seed=seed + 2)
+        at_samples[kk] = {"grid_per_ray": q.grid_per_ray, "estimate_time": q.estimate_time,
+                          "reuse_estimate_time": qw.estimate_time,
+                          "estimated": {k: Cost.point(k, c.build_time, c.per_ray) for k, c in q.candidates.items()
+                                        if k != "grid"}}
     s = SceneResult(
         name, n, len(o), Cost.point("grid", g_build, g_time / len(o), measured=True), measured, est, p.grid_per_ray, p.estimate_time,
         p.samples, group, grid_sample_per_ray=p.grid_sample_per_ray, reuse_estimate_time=pw.estimate_time,
         # the hybrid the evaluation runs decides between the grid and the numpy BVH: its floor
         floor=cal.break_even_floor(n, ("bvh",)),
-        ceiling=dict(cal.prior(n, kinds).ceiling),
-        prior_estimated={k: Cost.point(k, (e := cal.estimate(k, n)).build_time, e.per_ray) for k in kinds
-                         if k in cal.fits},
+        ceiling=dict(cal.prior(n, kinds).ceiling), at_samples=at_samples,
+        prior_estimated={**{k: cal.estimate(k, n) for k in kinds if k in cal.fits},
+                         **({"grid": g} if (g := cal.grid_estimate(n)) is not None else {})},
+        unsampled_below=max([float(x) for x in RAY_COUNTS if not sample_pays(cal, samples, x)], default=0.0),
         extra={"plan_grid_build": p.grid_build_time, "grid_resolution": [int(x) for x in getattr(grid, "res", [])],
                "plan_break_even": {k: c.break_even for k, c in p.candidates.items() if k != "grid"},
                "break_even_low": p.candidates["bvh"].break_even_low, "break_even_high": p.candidates["bvh"].break_even_high,
@@ -1122,7 +1193,7 @@ def summarise(scenes, kinds) -> dict:
     rows, wasted = [], 0
     for r in RAY_COUNTS:
         per = [strategy_totals(s, [r], ("bvh",)) for s in scenes]
-        wasted += sum(int(r <= s.samples and t["choice_reuse"][0] != "grid") for s, t in zip(scenes, per))
+        wasted += sum(int(r <= s.samples_for([r])[0] and t["choice_reuse"][0] != "grid") for s, t in zip(scenes, per))
         rows.append({"R": float(r),
                      "grid": median_finite([t["grid"][0] / t["hybrid"][0] for t in per]),
                      "bvh": median_finite([t["bvh"][0] / t["hybrid"][0] for t in per]),
@@ -1190,7 +1261,7 @@ __all__ = [
     "break_even", "calibration_parallelism", "calibration_repeatability", "calls_of_1000", "choose_defaults",
     "chosen_cost", "constants_apart", "count_comparison", "decide_model", "error_components", "error_summary",
     "estimate_cost_percent", "estimated_break_even", "fit_model", "fnum", "grid_estimators", "grid_sample_ratios",
-    "held_out_errors", "hybrid_choice", "interval_coverage", "hybrid_reuse_choice", "hybrid_totals", "large_builds", "leave_one_out",
+    "held_out_errors", "hybrid_choice", "interval_coverage", "unsampled_rays", "hybrid_reuse_choice", "hybrid_totals", "large_builds", "leave_one_out",
     "log2n", "loo_break_even_errors", "measure_scene", "measure_truths", "median_abs", "median_finite",
     "median_per_ray", "model_comparison", "model_functions", "never_agreement", "nlog2n", "online_switch",
     "parallelism_summary", "pick_accuracy", "plan_repeatability", "reestimate", "relative_difference",

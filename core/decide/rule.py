@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from .cost import break_even
+from .cost import Cost, break_even
 
 #: structures that answer every ray bit for bit like the grid: a plan that drew its samples
 #: from the workload keeps their answers when it chooses one of these
@@ -79,3 +79,26 @@ def over_life(estimates: dict, rays: float, built=()) -> tuple[str, dict, float,
             if be < best:
                 best, be_kind = be, k
     return kind, totals, best, be_kind
+
+
+def settle_bound(grid, estimate, ceiling: float) -> float:
+    """The rays from which building ``estimate``'s structure (a ``cost.Cost`` for N) beats
+    building the grid, nothing being built yet: R_0 = (T_B^H - T_B^G) / (t_G - t_H) with the
+    grid's build and time per ray at the low end of the calibration's estimate for N (``grid``,
+    ``Calibration.grid_estimate``; 0 where H builds faster, inf where the grid is faster per
+    ray), and never above the calibration's ``ceiling``, its bound over all its scenes.  A
+    plan for more rays builds neither the grid nor a sample."""
+    if grid is None:
+        return float(ceiling)
+    r0 = break_even(max(float(estimate.build_time) - float(grid.build_low), 0.0), float(grid.per_ray_low),
+                    float(estimate.per_ray))
+    return min(float(ceiling), r0)
+
+
+def unsampled(grid, estimates: dict) -> tuple[float, dict]:
+    """(grid time per ray, {kind: Cost}) the rule weighs when a plan decides on the
+    calibration's estimates for N alone (no sample: ``core.plan.sample_pays``): the grid at
+    the low end of its estimate (``Calibration.grid_estimate``), each candidate's time per ray
+    at the high end of its own, so that a structure is built only where it wins on figures
+    that favour the grid already built."""
+    return float(grid.per_ray_low), {k: Cost.point(k, e.build_time, e.per_ray_high) for k, e in estimates.items()}

@@ -44,6 +44,24 @@ from ..intersect import slab_interval
 #: and "The decision report").
 DEFAULT_SAMPLES = 16384
 
+#: a plan samples at most this share of its expected rays, and at least SAMPLE_MIN rays (the
+#: smallest batch the calibration times, so a sample's cost is known: ``sample_count``)
+SAMPLE_SHARE = 0.02
+SAMPLE_MIN = 1024
+#: a plan samples only where the sample costs at most this share of the workload's own
+#: trace through the grid (``core.plan.sample_pays``); for fewer rays it decides on the
+#: calibration's estimates for N
+SAMPLE_COST_SHARE = 0.10
+
+
+def sample_count(samples: int, expected_rays: float) -> int:
+    """The rays a plan samples for ``expected_rays``: ``samples``, cut to SAMPLE_SHARE of the
+    expected rays (never below SAMPLE_MIN).  A small batch costs the lockstep grid about
+    twice a large one's time per ray, so a full sample for a few thousand rays would cost
+    more than the workload it decides for; the spread of a smaller sample's estimate is
+    then paid on few rays, where a wrong pick costs little."""
+    return max(1, min(int(samples), max(SAMPLE_MIN, int(SAMPLE_SHARE * float(expected_rays)))))
+
 #: points per ray at which the reference count of the cells along the segment is read
 POINTS = 16
 #: rays whose references are counted (an even spread of the sample): the cells are counted
