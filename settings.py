@@ -193,7 +193,9 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
     )
     sample_rays: IntProperty(
         name="Sample Rays",
-        description="Representative rays traced through the grid, whose work counts give its time per ray (K in the paper)",
+        description="Representative rays traced through the grid, whose work counts give its time per ray (K in the "
+                    "paper); at most 2% of the expected rays (at least 1,024), and none where they would cost more "
+                    "than 10% of the rays' trace",
         default=DEFAULT_SAMPLES, min=1, max=1 << 22, soft_min=256, soft_max=1 << 18,
     )
     grid_density: FloatProperty(
