@@ -31,9 +31,13 @@ grid or the numpy BVH, which agree bit for bit; Embree retraces everything), and
 decision weighs only the rays left.  A workload of at most K rays is therefore answered
 whole while planning, and the plan keeps the grid: nothing is left to build for.
 
-Before any sample, the calibration alone bounds R* from below (``Calibration.prior``: the
-lowest build over the largest gain per ray of any calibration scene, halved): for fewer
-expected rays the grid wins whatever a sample would say, so the plan takes none.
+K is the ``samples`` asked for, cut to SAMPLE_SHARE of the expected rays (never below
+SAMPLE_MIN, ``work.sample_count``).  Before any sample, the calibration alone bounds R*
+from below (``Calibration.prior``: the lowest build over the largest gain per ray of any
+calibration scene, halved): for fewer expected rays the grid wins whatever a sample would
+say, so the plan takes none.  Above that floor, a sample that would cost more than
+SAMPLE_COST_SHARE of the workload's own grid trace (``sample_pays``) is not taken either:
+the calibration's estimates for N decide (``rule.unsampled``), leaning to the grid.
 
 Online mode (``trace_online``), which needs no ray count: trace with the grid in batches
 and switch to H once the grid's accumulated trace time reaches H's estimated build
