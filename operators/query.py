@@ -313,16 +313,14 @@ def _cast_hits(call, s, objects, names, inst, kind, materials, mats, mat_names, 
     for a, b in call.chunks(progress):
         h, kind = call.query(call.rays(a, b), flat=False, slot=None if slot_ is None else slot_[a:b])
         k = h.triangle
-        t[a:b], tri[a:b] = h.t, k
+        t[a:b], tri[a:b], u[a:b], v[a:b] = h.t, k, h.u, h.v
         if isinstance(h, core.InstanceHits):
             got, (o_h, i_h, p_h, n_h, u_h, v_h) = s.decode(h, hits_only=True)
-            u[a:b], v[a:b] = h.u, h.v
-            u[got + a], v[got + a] = u_h, v_h
+            u[got + a], v[got + a] = u_h, v_h  # a mirrored instance's u and v trade places
             got_cols = (o_h, i_h, p_h, n_h) + ((s.decode_materials(h, hits_only=True),) if materials else ())
         else:
             if tables is None:
                 tables = s.per_triangle() + ((s.material_tables()[1],) if materials else ())
-            u[a:b], v[a:b] = h.u, h.v
             kg = k[k >= 0]
             got_cols = tuple(np.take(table, kg, axis=0) for table in tables)
         for col, x in zip(cols, got_cols):

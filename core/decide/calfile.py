@@ -121,10 +121,11 @@ class Calibration:
     #: per-ray time models on the grid sample's work counts, {'grid' | kind: CountFit}
     #: (``cost.fit_counts``); empty in files made before them: the plan then times its sample
     counts: dict = field(default_factory=dict)
-    #: (the scenes list, ``cost.grid_laws`` of it): the grid's laws, fitted on first use
+    #: (the scenes list, the spread, ``cost.grid_laws`` of them): the grid's laws, fitted on first use
     _grid_laws: tuple | None = field(default=None, repr=False, compare=False)
-    #: {(the scenes list's id and length, K): ``grid_sample_ratio(K)``}, made on first use
-    _ratios: dict | None = field(default=None, repr=False, compare=False)
+    #: (the scenes list, the spread, (log2 K, [(low, median, high)]) per measured sample size or
+    #: None): what ``grid_sample_ratio`` interpolates, made on first use
+    _ratio_table: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -139,9 +140,14 @@ class Calibration:
     def grid_estimate(self, n: int) -> Cost | None:
         """The grid's build and time per ray for an N-triangle mesh from the calibration
         scenes alone (``cost.grid_estimate``), None when they measured no grid."""
-        if self._grid_laws is None or self._grid_laws[0] is not self.scenes:  # fitted once per scene list
-            self._grid_laws = (self.scenes, grid_laws(self.scenes, self.spread))
-        return grid_estimate(self.scenes, n, self.spread, laws=self._grid_laws[1] or ())
+        if not self._cached(self._grid_laws):
+            self._grid_laws = (self.scenes, self.spread, grid_laws(self.scenes, self.spread))
+        return grid_estimate(self.scenes, n, self.spread, laws=self._grid_laws[2] or ())
+
+    def _cached(self, entry) -> bool:
+        """Whether a cache entry (scenes, spread, ...) was made from this calibration's
+        scenes and spread (``replace`` copies the entry with the fields)."""
+        return entry is not None and entry[0] is self.scenes and entry[1] == self.spread
 
     def grid_sample_ratio(self, k: int) -> tuple[float, float, float]:
         """(median, low, high) of the per-scene ratio large-workload grid time per ray /
@@ -153,22 +159,22 @@ class Calibration:
         time per ray, the more so the smaller K.  (1, 1, 1)
         when the calibration holds no grid samples.
         """
-        key = (id(self.scenes), len(self.scenes), int(k))
-        if self._ratios is not None and key in self._ratios:  # percentiles over the scenes: made once per K
-            return self._ratios[key]
-        ladder = sorted({kk for r in self.scenes for kk in r.grid_samples})
-        if not ladder:
+        if not self._cached(self._ratio_table):  # the percentiles over the scenes: once
+            ladder = sorted({kk for r in self.scenes for kk in r.grid_samples})
+            per_k = []
+            for kk in ladder:
+                q = [x for x in (r.grid_sample_ratio(kk) for r in self.scenes)
+                     if x is not None and math.isfinite(x) and x > 0]
+                med = float(np.median(q))
+                lo, hi = (float(v) for v in np.percentile(q, self.spread))
+                per_k.append((min(lo, med), med, max(hi, med)))
+            table = (np.log2(np.asarray(ladder, np.float64)), per_k) if ladder else None
+            self._ratio_table = (self.scenes, self.spread, table)
+        if self._ratio_table[2] is None:
             return 1.0, 1.0, 1.0
-        per_k = []
-        for kk in ladder:
-            q = [x for x in (r.grid_sample_ratio(kk) for r in self.scenes) if x is not None and math.isfinite(x) and x > 0]
-            med = float(np.median(q))
-            lo, hi = (float(v) for v in np.percentile(q, self.spread))
-            per_k.append((min(lo, med), med, max(hi, med)))
-        x = np.log2(np.asarray(ladder, np.float64))
+        x, per_k = self._ratio_table[2]
         xk = math.log2(max(int(k), 1))
         lo, med, hi = (float(np.interp(xk, x, [p[i] for p in per_k])) for i in range(3))
-        self._ratios = {**(self._ratios or {}), key: (med, lo, hi)}
         return med, lo, hi
 
     def uses_term(self, name: str) -> bool:
@@ -213,9 +219,9 @@ class Calibration:
         return replace(self, fits=fit(self.scenes, kinds, model=model, spread=self.spread), model=model, counts=counts)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        d = asdict(replace(self, _grid_laws=None, _ratio_table=None))  # the caches hold the scenes again
         d.pop("_grid_laws")
-        d.pop("_ratios")
+        d.pop("_ratio_table")
         d["spread"] = list(self.spread)
         return d
 
