@@ -764,8 +764,7 @@ class CountFit:
 #: The numpy BVH's is a + b hit + c candidates: a ray that hits descends to the leaves and a
 #: ray that misses leaves the tree near its root, so its time follows the sample's hit
 #: fraction, and the grid's candidates say how densely the leaves it reaches are filled;
-#: a + b log2 N saw neither and ran 17% off per ray on meshes outside the calibration set
-#: (BENCHMARKS.md, "The new evaluation set's tuning half").
+#: a + b log2 N sees neither (BENCHMARKS.md, "The new evaluation set: tuning and final halves").
 COUNT_TERMS = {
     "grid": ("1", "steps", "candidates"),
     "bvh": ("1", "hit", "candidates"),
