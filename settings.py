@@ -62,6 +62,12 @@ RUNNING: dict = {}
 #: panel's "Structures per Part".  Empty until a changed scene has been traced.
 PARTS: dict = {}
 
+#: each scene's latest closest-point query with the decision for point queries: its structure,
+#: points, estimated break-even and reason (``core.decide.points.PointPlan.to_dict`` plus
+#: 'points'), keyed by the scene's name; written by ``operators/query.py``, drawn by the
+#: panel's "Closest Points".  Empty until a script asks for closest points.
+POINTS: dict = {}
+
 
 def _get_expected(self):
     return min(ray_budget(self.id_data, self)["rays"], RAYS_MAX)

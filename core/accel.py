@@ -219,17 +219,24 @@ class Accel:
         structures without a tree build a BVH over the same mesh on first use."""
         raise NotImplementedError
 
+    def _closest_search(self):
+        """fn(points, max_distance) -> ``proximity.Nearest``: the closest-point search this
+        structure runs, its index made before any thread shares it (the tree's branch and
+        bound; the grid searches its own cells)."""
+        index = self._point_index()
+        return lambda p, md: proximity.closest_tree(index, p, md)
+
     def closest(self, points, max_distance=np.inf) -> proximity.Nearest:
         """The closest point on the surface to each of ``points`` (M, 3): ``distance``,
         ``triangle``, ``points``, ``u``, ``v`` (``proximity.Nearest``); a point with nothing
         within ``max_distance`` (inclusive) gets distance inf and triangle -1.  Exact in
         float64; a tie goes to the lowest triangle index."""
-        index = self._point_index()
+        search = self._closest_search()
         p = proximity.check_points(points)
         parts = self._point_parts(len(p))
         if len(parts) == 1:
-            return proximity.closest_tree(index, p, max_distance)
-        got = self._in_pool(lambda sl: proximity.closest_tree(index, p[sl], max_distance), parts)
+            return search(p, max_distance)
+        got = self._in_pool(lambda sl: search(p[sl], max_distance), parts)
         return proximity.Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in
                                    ("distance", "triangle", "points", "u", "v")))
 

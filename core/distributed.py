@@ -519,8 +519,8 @@ def closest(path, points, *, max_distance=np.inf, kind: str = "bvh", configs: di
     """The closest surface point of the scene file ``path`` to each of ``points`` (an (M, 3)
     dask array chunked by rows), on the Dask cluster of the current client, as dask arrays.
 
-    kind: the structure each worker builds and keeps ('bvh' default; 'grid' and 'embree'
-    search a BVH they build on first use; 'brute' the float64 reference); max_distance:
+    kind: the structure each worker builds and keeps ('bvh' default; 'grid' searches its
+    own cells, 'embree' a BVH it builds on first use; 'brute' the float64 reference); max_distance:
     inclusive, positive (inf: no limit); configs, threads: as ``trace``.  Raises
     FileNotFoundError / core.SceneFileError naming the file, TypeError/ValueError for
     malformed arguments, here, before any task runs."""

@@ -32,6 +32,7 @@ import threading
 import numpy as np
 
 from .accel import LOCKSTEP_CHUNK, Accel
+from . import proximity
 from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F64 = np.float64
@@ -98,9 +99,10 @@ def _pieces(counts, cap):
         yield _expand(counts, lo, min(total, lo + cap))
 
 
-def empty_radius(occupied, levels=SKIP_LEVELS):
+def empty_radius(occupied, levels=SKIP_LEVELS, inside: bool = True):
     """Per cell, a radius r such that the cube of (2r+1)^3 cells around it holds no
-    occupied cell and lies inside the grid (r = 0: no such cube beyond the cell itself).
+    occupied cell and, with ``inside``, lies inside the grid (r = 0: no such cube beyond
+    the cell itself).
 
     r is the largest of 0, 1, 3, 7, ..., 2**levels - 1 that fits: the occupied set is
     dilated by cubes of those radii, each from the one before (a cube of radius m
@@ -127,7 +129,7 @@ def empty_radius(occupied, levels=SKIP_LEVELS):
         m = 2 * m + 1
         np.copyto(r, np.uint8(m), where=~covered)
     # the cube must stay inside the grid: at most the cells left to the nearest face
-    for axis in range(3):
+    for axis in range(3 if inside else 0):
         n = shape[axis]
         idx = np.arange(n)
         face = np.minimum(np.minimum(idx, n - 1 - idx), 255).astype(np.uint8)
@@ -205,9 +207,24 @@ class UniformGrid(Accel):
     build_block = 1 << 16
 
     def _point_index(self):
-        from .bvh import point_index_of  # a BVH for the point queries, built on first use
+        from .bvh import point_index_of  # a BVH for the tree's point queries, built on first use
 
         return point_index_of(self)
+
+    def _closest_search(self):
+        index = self.cell_index()
+        return lambda p, md: proximity.closest_grid(index, p, md)
+
+    def cell_index(self) -> proximity.CellIndex:
+        """The grid's own cells as the closest point's index (``proximity.CellIndex``), kept."""
+        index = getattr(self, "_cells", None)
+        if index is None:
+            occupied = (np.diff(self.cell_start) > 0).reshape(self.res[::-1])
+            index = proximity.CellIndex(self.mesh, self.lo, self.cell_size, self.res, self.cell_start,
+                                        self.cell_tris, self.delta,
+                                        empty_radius(occupied, inside=False).ravel())
+            self._cells = index
+        return index
 
     def _build(self):
         mesh = self.mesh

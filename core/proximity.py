@@ -511,6 +511,186 @@ def closest_tree(index: TreeIndex, points, max_distance=np.inf) -> Nearest:
     return Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in ("distance", "triangle", "points", "u", "v")))
 
 
+class CellIndex:
+    """A uniform grid's arrays (``grid.UniformGrid``'s layout) over a mesh, for the closest
+    point: cell (i, j, k) spans ``lo + (i, j, k) * cell_size`` to one cell further and holds
+    the triangles ``cell_tris[cell_start[c]: cell_start[c + 1]]``, c = i + j * res[0] + k *
+    res[0] * res[1]: every valid triangle that meets the cell grown by ``delta``; the cells
+    cover every triangle."""
+
+    def __init__(self, mesh: TriangleMesh, lo, cell_size, res, cell_start, cell_tris, delta: float, empty=None):
+        self.mesh = mesh
+        self.lo = np.asarray(lo, F64)
+        self.cell_size = np.asarray(cell_size, F64)
+        self.res = np.asarray(res, np.int64)
+        self.hi = self.lo + self.cell_size * self.res
+        self.stride = np.array([1, self.res[0], self.res[0] * self.res[1]], np.int64)
+        self.cell_start = np.asarray(cell_start, np.int64)
+        self.cell_tris = np.asarray(cell_tris, np.int64)
+        self.delta = float(delta)
+        self.count = np.diff(self.cell_start)
+        #: per cell, a radius r such that the cells within Chebyshev distance r are all empty
+        #: (0 when unknown): a search from that cell starts at ring r + 1
+        self.empty = np.zeros(len(self.count), np.int64) if empty is None else np.asarray(empty, np.int64)
+        self.tv64 = mesh.tri_vertices.astype(F64)
+        self.corner_rows = self.tv64.reshape(-1, 9)
+        self._shells = {}
+
+    def __len__(self):
+        return len(self.cell_tris)
+
+    def shell(self, r: int) -> np.ndarray:
+        """(K, 3) int64 the cell offsets at Chebyshev distance exactly r, on the axes where the
+        grid has room for them (an offset of r along an axis of fewer than r + 1 cells can hold
+        no cell): each face of the cube once, its edges with the lower axis' face."""
+        got = self._shells.get(r)
+        if got is not None:
+            return got
+        if r == 0:
+            out = np.zeros((1, 3), np.int64)
+        else:
+            lim = self.res - 1
+            faces = []
+            for k in range(3):
+                if r > lim[k]:
+                    continue
+                span = [np.arange(-min(r - 1 if j < k else r, lim[j]), min(r - 1 if j < k else r, lim[j]) + 1)
+                        for j in range(3)]
+                span[k] = np.array([-r, r])
+                faces.append(np.stack(np.meshgrid(*span, indexing="ij"), -1).reshape(-1, 3))
+            out = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
+        if len(self._shells) < 256:
+            self._shells[r] = out
+        return out
+
+    def cell_pairs(self, owner, cell):
+        """(owner repeated, triangle) for every triangle of each (owner, cell) pair."""
+        n = self.count[cell]
+        own = np.repeat(owner, n)
+        first = np.repeat(self.cell_start[cell], n)
+        offset = np.arange(own.size) - np.repeat(np.cumsum(n) - n, n)
+        return own, self.cell_tris[first + offset]
+
+
+def _measure_pairs(corner_rows, p, own, tri, best):
+    """Fold each (point ``own``, triangle ``tri``) pair into ``best`` exactly."""
+    c = np.take(corner_rows, tri, axis=0)
+    q = np.take(p, own, axis=0)
+    col = [c[:, k] for k in range(9)]
+    d2, u, v = closest_on_columns([q[:, k] for k in range(3)], col[0:3], col[3:6], col[6:9])
+    _reduce_pairs(own, tri, d2, u, v, best)
+
+
+def _beyond_d2(index: CellIndex, p, cell, r):
+    """(F,) squared distance from each p to the grid's cells outside the cube of Chebyshev
+    radius r about its ``cell`` (inf where that cube covers the grid): the least over the
+    six slabs of cells past the cube's faces, each slab as wide as the grid on its other axes."""
+    lo, hi, cs = index.lo, index.hi, index.cell_size
+    out_gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+    base = (out_gap * out_gap).sum(axis=1)
+    best = np.full(len(p), np.inf)
+    for k in range(3):
+        rest = base - out_gap[:, k] ** 2
+        up = cell[:, k] + r + 1  # the first cell past the cube's upper face
+        has = up <= index.res[k] - 1
+        g = np.maximum(lo[k] + up * cs[k] - p[:, k], 0.0)
+        np.minimum(best, np.where(has, rest + g * g, np.inf), out=best)
+        down = cell[:, k] - r  # cells below this one are past the lower face
+        has = down >= 1
+        g = np.maximum(p[:, k] - (lo[k] + down * cs[k]), 0.0)
+        np.minimum(best, np.where(has, rest + g * g, np.inf), out=best)
+    return best
+
+
+#: a cell is opened when its box is within the best distance widened by this relative margin
+#: (float64 rounding of the cell's bounds can then only open more, never prune)
+CELL_MARGIN = 1e-9
+
+
+#: the grid search's work counts (``closest_grid(work=...)``), in this order: the points, the
+#: (point, ring) steps, the (point, cell) pairs the rings enumerate, the (point, triangle)
+#: pairs measured
+GRID_WORK = ("points", "rings", "cells", "pairs")
+
+
+def _grid_chunk(index: CellIndex, p, md, work=None) -> Nearest:
+    """The closest point of checked points ``p`` by rings of cells about each point's cell
+    (the nearest cell of the grid for a point outside it): ring r holds the cells at Chebyshev
+    distance r; its cells nearer than the point's best distance so far are measured, and a
+    point stops once its best is nearer than every cell past the rings searched
+    (``_beyond_d2``), so the search is exact; a tie in distance still opens a cell, for the
+    lowest triangle index.  The rings start past the empty cube about the point's cell."""
+    m = len(p)
+    best = _fresh_best(m, md)
+    if work is not None:
+        work[0] += m
+    if m == 0 or len(index) == 0:
+        return _nearest(p, best, index.tv64)
+    res, stride = index.res, index.stride
+    cell = np.clip(np.floor((p - index.lo) / index.cell_size), 0, res - 1).astype(np.int64)
+    slack = index.delta + 4.0 * np.spacing(np.abs(index.lo).max() + np.abs(index.hi).max())
+
+    def measure(own, cid):
+        o, tri = index.cell_pairs(own, cid)
+        _measure_pairs(index.corner_rows, p, o, tri, best)
+        if work is not None:
+            work[3] += len(o)
+
+    # every point starts past the empty cube about its cell: those rings hold nothing
+    ring = index.empty[cell @ stride] + np.where(index.empty[cell @ stride] > 0, 1, 0)
+    rows = np.arange(m)
+    while rows.size:
+        for r in np.unique(ring[rows]):
+            rr_all = rows[ring[rows] == r]
+            off = index.shell(int(r))
+            per = max(1, PAIRS // max(1, len(off)))
+            for s in range(0, rr_all.size, per):
+                rr = rr_all[s:s + per]
+                cc = cell[rr][:, None, :] + off[None, :, :]                       # (A, K, 3)
+                a, kk = np.nonzero(((cc >= 0) & (cc < res)).all(axis=2))
+                cc = cc[a, kk]
+                cid = cc @ stride
+                full = index.count[cid] > 0
+                own, cc, cid = rr[a[full]], cc[full], cid[full]
+                q = p[own]
+                blo = index.lo + cc * index.cell_size
+                gap = np.maximum(np.maximum(blo - q, q - (blo + index.cell_size)), 0.0)
+                d2 = (gap * gap).sum(axis=1)
+                near = d2 <= best[0][own] * (1.0 + CELL_MARGIN)
+                own, cid, d2 = own[near], cid[near], d2[near]
+                if work is not None:
+                    work[1] += len(rr)
+                    work[2] += len(rr) * len(off)
+                if own.size == 0:
+                    continue
+                # each point's nearest cell of the ring first: its distance then prunes the rest
+                order = np.lexsort((d2, own))
+                head = np.ones(len(order), bool)
+                head[1:] = own[order[1:]] != own[order[:-1]]
+                measure(own[order[head]], cid[order[head]])
+                rest = order[~head]
+                keep = rest[d2[rest] <= best[0][own[rest]] * (1.0 + CELL_MARGIN)]
+                if keep.size:
+                    measure(own[keep], cid[keep])
+        bound = np.sqrt(_beyond_d2(index, p[rows], cell[rows], ring[rows])) - slack
+        done = (np.sqrt(best[0][rows]) < bound) | np.isinf(bound)
+        rows = rows[~done]
+        ring[rows] += 1
+    return _nearest(p, best, index.tv64)
+
+
+def closest_grid(index: CellIndex, points, max_distance=np.inf, work=None) -> Nearest:
+    """The closest point by rings of grid cells (``_grid_chunk``), in chunks of
+    ``POINT_CHUNK`` points; ``work``, a list of four numbers, gains the search's counts
+    (``GRID_WORK``)."""
+    p = check_points(points)
+    md = check_max_distance(max_distance)
+    if len(p) <= POINT_CHUNK:
+        return _grid_chunk(index, p, md, work)
+    got = [_grid_chunk(index, p[a:a + POINT_CHUNK], md, work) for a in range(0, len(p), POINT_CHUNK)]
+    return Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in ("distance", "triangle", "points", "u", "v")))
+
+
 def winding_number_tree(index: TreeIndex, points, accuracy: float = ACCURACY) -> np.ndarray:
     """The generalized winding number by Barill et al.'s tree sum: a child subtree whose
     centroid is farther than ``accuracy`` times its radius counts as its dipole, a leaf nearer

@@ -427,7 +427,9 @@ def _distance(args, out_dir, stdout) -> dict:
     ids, counts = np.unique(near.object_index[found], return_counts=True)
     per_object = {str(near.object_names[i]): int(c) for i, c in zip(ids, counts)}
     doc = {"command": "distance", "scene": scene.name, "file": str(args.points),
-           "max_distance": md if math.isfinite(md) else None, "distance": stats, "nearest_objects": per_object}
+           "max_distance": md if math.isfinite(md) else None, "distance": stats, "nearest_objects": per_object,
+           "structure": near.structure,
+           "break_even": None if not math.isfinite(near.break_even) else float(near.break_even)}
     if out_dir is not None:
         from ..core.atomic import atomic_path
 

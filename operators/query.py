@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import core
+from .. import core, settings
 from ..core.accel import LOCKSTEP_CHUNK
 
 __all__ = ["CastResult", "AllHits", "cast", "occluded", "cast_all", "STRUCTURES"]
@@ -527,8 +527,10 @@ class ClosestResult:
     objects, object_names, object_index, instance_index, instance_matrices, polygon_index,
         triangle, u, v: as ``CastResult``'s (-1 / 0 where not found)
     smooth_normals, uv: with ``smooth=True`` / ``uv=True``, as ``CastResult``'s; else None
-    structure: the structure that answered ('bvh': the point queries search a BVH, built on
-        first use beside the session's ray structure)
+    structure: the structure that answered the points ('grid' or 'bvh' as the decision for
+        point queries chose, or the one named; 'embree' searches a BVH built beside it)
+    break_even: the points from which the BVH beats the grid, as the decision estimated them
+        (inf: never; NaN: no decision was made, a structure was named or the BVH was built)
     """
 
     distance: np.ndarray
@@ -547,6 +549,7 @@ class ClosestResult:
     structure: str
     smooth_normals: np.ndarray | None = None
     uv: np.ndarray | None = None
+    break_even: float = float("nan")
 
 
 def _points(points) -> np.ndarray:
@@ -555,7 +558,8 @@ def _points(points) -> np.ndarray:
     return core.proximity.check_points(_vectors(points, "points"))
 
 
-def _point_session(depsgraph, selected_only, attributes=()):
+def _point_session(depsgraph, selected_only, attributes=(), tree=True):
+    """(session, its BVH for the tree queries, or the scene's props without ``tree``)."""
     import bpy
 
     from . import session
@@ -567,23 +571,78 @@ def _point_session(depsgraph, selected_only, attributes=()):
         depsgraph.update()
     props = depsgraph.scene.hybrid_raycast
     s = session.get(depsgraph, props, selected_only=bool(selected_only), attributes=attributes)
-    return s, s.structure("bvh")
+    return s, (s.structure("bvh") if tree else props)
+
+
+def _check_point_structure(structure):
+    if structure not in STRUCTURES:
+        raise ValueError(f"structure must be one of {', '.join(STRUCTURES)}, got {structure!r}")
+    if structure == "embree" and not core.embree_available():
+        raise ValueError("structure='embree' needs embreex, which cannot be imported here")
+
+
+def closest_planned(s, p, md, structure: str, grid_config: dict, calibration=None):
+    """(``core.proximity.Nearest``, the kind that answered, ``core.decide.points.PointPlan`` or
+    None) for checked points ``p`` on session ``s``.
+
+    A named structure answers every point.  'auto': a BVH the session has built answers
+    (nothing is cheaper to own, and the grid is at best as fast per point); else the grid
+    (built if need be) answers an evenly spaced sample of the points, whose work counts give
+    the paper's decision for the rest (``core.decide.points.decide``: the least estimated
+    total, the grid's build sunk), and the structure it picks answers them.  The plan is kept
+    as ``s.point_plan``."""
+    if structure != "auto":
+        return s.structure(structure).closest(p, md), structure, None
+    built = {k for k, _ in s.structures}
+    if "bvh" in built:
+        plan = core.decide.points.PointPlan("bvh", {}, {}, float("nan"), 0, "the session's BVH is built")
+        s.point_plan = plan
+        return s.structure("bvh").closest(p, md), "bvh", plan
+    grid = next((a for (k, _), a in s.structures.items() if k == "grid"), None) or s.structure("grid", **grid_config)
+    m = len(p)
+    k = core.decide.points.sample_size(m)
+    rows = np.arange(k, dtype=np.int64) * m // max(k, 1)
+    work = [0, 0, 0, 0]
+    got = core.proximity.closest_grid(grid.cell_index(), p[rows], md, work=work)
+    if calibration is None:
+        from .calibrate import load_calibration
+
+        calibration = load_calibration()[0]
+    plan = core.decide.points.decide(calibration.point_model(), s.mesh.triangle_count, m - k, work, built={"grid"})
+    s.point_plan = plan
+    settings.POINTS[s._summary.get("scene", "")] = dict(plan.to_dict(), points=m, triangles=s.mesh.triangle_count)
+    if k == m:
+        return got, "grid", plan
+    rest = np.ones(m, bool)
+    rest[rows] = False
+    acc = grid if plan.kind == "grid" else s.structure(plan.kind)
+    more = acc.closest(p[rest], md)
+    out = core.proximity.Nearest(np.empty(m), np.empty(m, np.int32), np.empty((m, 3)), np.empty(m, np.float32),
+                                 np.empty(m, np.float32))
+    for f in ("distance", "triangle", "points", "u", "v"):
+        getattr(out, f)[rows] = getattr(got, f)
+        getattr(out, f)[rest] = getattr(more, f)
+    return out, plan.kind, plan
 
 
 def closest(points, *, max_distance=np.inf, depsgraph=None, selected_only: bool = False, smooth: bool = False,
-            uv: bool = False) -> ClosestResult:
+            uv: bool = False, structure: str = "auto") -> ClosestResult:
     """The closest point of the evaluated scene's surface to each of ``points`` (M, 3) or (3,),
     world space, with every per-hit field of ``cast`` plus ``distance`` (``ClosestResult``).
 
     max_distance: inclusive; a point with nothing that near gets distance inf (found False).
     The search is exact in float64 (an exact tie to the lowest triangle index) over the same
-    session (extracted triangles, instances) as ``cast``.  Raises TypeError/ValueError naming
-    the argument, NoGeometry / InvalidGeometry for a scene without usable triangles."""
+    session (extracted triangles, instances) as ``cast``, whichever structure answers.
+    structure: 'auto' (the paper's decision for point queries, ``closest_planned``), or
+    'grid', 'bvh', 'embree' (its point queries search a BVH built beside it on first use).
+    Raises TypeError/ValueError naming the argument, NoGeometry / InvalidGeometry for a scene
+    without usable triangles."""
     p = _points(points)
     md = core.proximity.check_max_distance(max_distance)
+    _check_point_structure(structure)
     attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ())
-    s, acc = _point_session(depsgraph, selected_only, attributes)
-    n = acc.closest(p, md)
+    s, props = _point_session(depsgraph, selected_only, attributes, tree=False)
+    n, kind, plan = closest_planned(s, p, md, structure, {"density": float(props.grid_density)}, s.calibration)
     objects, names = s.tables()
     inst = s.mesh.instances
     tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
@@ -593,7 +652,8 @@ def closest(points, *, max_distance=np.inf, depsgraph=None, selected_only: bool 
     return ClosestResult(distance=n.distance, found=found, points=n.points, normals=tri_normals[k], objects=objects,
                          object_names=names, object_index=tri_obj[k], instance_index=tri_ins[k],
                          instance_matrices=inst.matrices, polygon_index=tri_poly[k], triangle=k, u=n.u, v=n.v,
-                         structure="bvh", smooth_normals=smooth_n, uv=uvs)
+                         structure=kind, smooth_normals=smooth_n, uv=uvs,
+                         break_even=plan.break_even if plan is not None else float("nan"))
 
 
 def inside(points, *, depsgraph=None, selected_only: bool = False) -> np.ndarray:

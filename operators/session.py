@@ -228,6 +228,8 @@ class Session:
     grid_rays: int = 0
     calibration: object = None
     kinds: tuple = ()
+    #: the last closest-point query's plan (``core.decide.points.PointPlan``; None before one)
+    point_plan: object = None
     #: whether this session replaced an earlier one of the same scene (the scene changes between calls)
     changed: bool = False
     #: (I,) bool: placements the previous session had too, with the same mesh and matrix
@@ -1040,6 +1042,7 @@ def clear():
     SOUPS.clear()
     LIFE.clear()
     settings.PARTS.clear()
+    settings.POINTS.clear()
     forget()
     ANALYSED.clear()
     EDITS.clear()

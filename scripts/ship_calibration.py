@@ -2,6 +2,7 @@
 
     .venv/bin/python scripts/ship_calibration.py [--model terms|power] [--scale default]
     .venv/bin/python scripts/ship_calibration.py --refit    # no timing: the file's own records
+    .venv/bin/python scripts/ship_calibration.py --points   # only the point queries' constants
 
 Run on a quiet machine: the file is what every user without their own calibration gets
 (labelled 'shipped defaults').  Prints the constants and the grid's sample ratios.
@@ -28,7 +29,24 @@ def main(argv=None) -> int:
     ap.add_argument("--refit", action="store_true",
                     help="fit the shipped file's own records again with the current models and count models "
                          "(Calibration.refitted), measuring nothing: for a change of model, not of machine")
+    ap.add_argument("--points", action="store_true",
+                    help="measure only the point queries' decision (core.decide.points.calibrate_points) on the "
+                         "scale's scenes and put it into the shipped file, keeping the rays' constants")
     args = ap.parse_args(argv)
+    if args.points:
+        from hybrid_raycast.core import scenes
+        from hybrid_raycast.core.decide import points
+
+        cal = decide.load(decide.DEFAULT_PATH, check_version=False)
+        model = points.calibrate_points(scenes.calibration_set(args.scale),
+                                        progress=lambda f, msg: print(f"[{f * 100:5.1f}%] {msg}", flush=True))
+        cal.points = model.to_dict()
+        note = "point queries' constants measured separately on the same scenes (scripts/ship_calibration.py --points)"
+        cal.notes = [n for n in cal.notes if n != note] + [note]
+        cal.save(args.output)
+        print(f"wrote {args.output}: {len(model.records)} point cases; grid terms {model.grid_terms}, "
+              f"BVH terms {model.bvh_terms}")
+        return 0
     if args.refit:
         old = decide.load(decide.DEFAULT_PATH, check_version=False)
         cal = old.refitted(args.model)

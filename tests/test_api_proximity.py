@@ -54,7 +54,7 @@ def test_closest_agrees_with_blenders_find_nearest_and_has_every_field(fresh, ad
     pts = np.random.default_rng(0).uniform([-6, -3, -4], [6, 3, 3], size=(400, 3))
     c = api.closest(pts)
     dist, near = blender_nearest(pts)
-    assert c.found.all() and c.structure == "bvh"
+    assert c.found.all() and c.structure in ("grid", "bvh")
     assert np.allclose(c.distance, dist, rtol=1e-5, atol=1e-5)
     assert np.allclose(c.points, near, atol=1e-4)
     names = c.object_names[c.object_index]
@@ -106,3 +106,22 @@ def test_bad_points_are_errors_naming_the_argument(fresh, addon):
         api.closest(np.zeros((1, 3)), max_distance=0.0)
     with pytest.raises(TypeError, match="points must hold real numbers"):
         api.signed_distance(np.array([["a", "b", "c"]]))
+
+
+def test_closest_decides_between_grid_and_bvh_and_every_structure_answers_the_same(fresh, addon):
+    """'auto' answers a sample on the grid and lets the decision for point queries pick the
+    structure for the rest; a named structure answers all; the answers are the same."""
+    scene()
+    api = addon.api
+    pts = np.random.default_rng(4).uniform([-6, -3, -4], [6, 3, 3], size=(3000, 3))
+    auto = api.closest(pts)
+    assert auto.structure in ("grid", "bvh") and (auto.break_even > 0 or math.isinf(auto.break_even))
+    for kind in ("grid", "bvh"):
+        got = api.closest(pts, structure=kind)
+        assert got.structure == kind and math.isnan(got.break_even)
+        assert np.array_equal(got.triangle, auto.triangle) and np.array_equal(got.distance, auto.distance)
+    # the session's BVH is built now: it answers without a sample
+    again = api.closest(pts[:10])
+    assert again.structure == "bvh"
+    with pytest.raises(ValueError, match="structure"):
+        api.closest(pts, structure="octree")

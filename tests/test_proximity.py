@@ -249,3 +249,91 @@ def test_many_points_on_the_thread_pool_give_the_one_thread_answer(monkeypatch):
     assert np.array_equal(a.points, b.points) and np.array_equal(a.u, b.u)
     # the same terms, summed in another order
     assert np.allclose(one.winding_number(pts), two.winding_number(pts), rtol=0, atol=1e-12)
+
+
+# -- the grid's own search (rings of cells) and the decision for point queries ------------------------
+
+def test_the_grid_searches_its_own_cells_exactly_on_flat_sparse_and_far_scenes():
+    """The ring search (``proximity.closest_grid``) against the brute force where it is hardest:
+    a flat mesh (one layer of cells), points far outside the grid, points deep inside a closed
+    sphere (past the empty cube about their cell) and a sparse scene of clusters."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    flat = S.terrain(400, seed=4)
+    flat = core.TriangleMesh(flat.vertices * np.array([1, 1, 0], np.float32), flat.triangles)
+    sphere = mesh_of(*icosphere(3))
+    cases = [("flat", flat, around(flat, 500, seed=1, pad=2.0)),
+             ("inside a sphere", sphere, np.random.default_rng(2).uniform(-0.5, 0.5, size=(300, 3))),
+             ("clusters", S.clusters(2000, seed=3), None),
+             ("square, far points", mesh_of(v, [[0, 1, 2], [0, 2, 3]]), around(mesh_of(v, [[0, 1, 2], [0, 2, 3]]), 300, pad=50))]
+    for name, mesh, pts in cases:
+        pts = around(mesh, 400, seed=5) if pts is None else pts
+        grid = core.build(mesh, "grid")
+        want = core.build(mesh, "brute").closest(pts)
+        work = [0, 0, 0, 0]
+        got = core.proximity.closest_grid(grid.cell_index(), pts, work=work)
+        assert np.array_equal(got.triangle, want.triangle), name
+        assert np.array_equal(got.distance, want.distance), name
+        assert work[0] == len(pts) and work[1] >= len(pts) and work[3] >= len(pts), (name, work)
+    assert getattr(core.build(sphere, "grid"), "_tree_index", None) is None  # no BVH was built for it
+
+
+def test_the_grid_search_honours_max_distance_and_an_empty_grid():
+    mesh = S.torus(600, seed=1)
+    pts = around(mesh, 500, seed=7)
+    want = core.build(mesh, "brute").closest(pts, max_distance=0.1)
+    got = core.build(mesh, "grid").closest(pts, max_distance=0.1)
+    assert np.array_equal(got.triangle, want.triangle)
+    assert np.array_equal(got.distance, want.distance)
+    assert (got.triangle == -1).any() and np.isinf(got.distance[got.triangle == -1]).all()
+    empty = core.build(mesh_of(np.zeros((3, 3)), [[0, 1, 2]]), "grid").closest(pts[:5])
+    assert (empty.triangle == -1).all() and np.isinf(empty.distance).all()
+
+
+def _records():
+    """Calibration records made by hand: the grid's time per point grows with its cells, the
+    BVH's with log N; three kinds of points on three sizes."""
+    from hybrid_raycast.core.decide.points import PointRecord
+
+    out = []
+    for n in (1000, 10000, 100000):
+        for kind, (rings, cells, pairs) in (("box", (6, 5000, 300)), ("near", (2, 80, 100)), ("surface", (1.5, 14, 30))):
+            work = [1000, rings * 1000, cells * 1000, pairs * 1000]
+            grid_t = 1e-6 * rings + 5e-8 * cells + 1e-7 * pairs
+            bvh_t = 2e-6 * np.log(n) * (pairs ** 0.3)
+            out.append(PointRecord(f"s{n}", kind, n, 1000, 1e-6 * n ** 0.9, 3e-6 * n ** 0.95, grid_t, bvh_t, work,
+                                   [w // 4 for w in work]))
+    return out
+
+
+def test_the_point_decision_fits_its_records_and_picks_the_least_total():
+    from hybrid_raycast.core.decide import points as P
+
+    model = P.fit_points(_records())
+    back = P.PointModel.from_dict(model.to_dict())
+    assert back.grid_terms == model.grid_terms and back.bvh_terms == model.bvh_terms
+    r = {x.points_kind: x for x in model.records if x.triangles == 10000}
+    # far points: the grid's rings of empty cells cost more than a BVH after a few dozen points
+    far = P.decide(model, 10000, 100_000, r["box"].sample_work)
+    assert far.kind == "bvh" and 0 < far.break_even < 1000
+    assert P.decide(model, 10000, 5, r["box"].sample_work).kind == "grid"
+    # on the surface the grid is as fast per point: it keeps them
+    assert P.decide(model, 10000, 100_000, r["surface"].sample_work).kind == "grid"
+    # a BVH already built costs nothing to own
+    assert P.decide(model, 10000, 5, r["box"].sample_work, built={"grid", "bvh"}).kind == "bvh"
+    ev = P.evaluate(model, model.records)
+    assert ev["picks"] / ev["picked"] >= 0.9 and ev["finite"] + ev["agree_never"] > 0
+    assert P.decide(None, 10000, 100, r["box"].sample_work).kind == "bvh"  # no calibration: the BVH
+
+
+def test_a_calibration_keeps_its_point_model_and_an_old_file_takes_the_shipped_one(tmp_path):
+    from hybrid_raycast.core.decide import points as P
+
+    cal = core.decide.load_default()
+    assert cal.point_model() is not None, "the shipped calibration carries the point decision's constants"
+    mine = core.decide.Calibration(dict(cal.fits), source="measured", points=P.fit_points(_records()).to_dict())
+    path = tmp_path / "c.json"
+    mine.save(path)
+    back = core.decide.load(path, check_version=False)
+    assert back.point_model().grid_terms == mine.point_model().grid_terms
+    old = core.decide.Calibration(dict(cal.fits), source="measured")
+    assert old.point_model().grid_terms == cal.point_model().grid_terms

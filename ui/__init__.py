@@ -4,6 +4,7 @@ from .panel import (
     VIEW3D_PT_hybrid_raycast,
     VIEW3D_PT_hybrid_raycast_figures,
     VIEW3D_PT_hybrid_raycast_parts,
+    VIEW3D_PT_hybrid_raycast_points,
     VIEW3D_PT_hybrid_raycast_settings,
     VIEW3D_PT_hybrid_raycast_trace,
 )
@@ -12,6 +13,7 @@ classes = (
     VIEW3D_PT_hybrid_raycast,
     VIEW3D_PT_hybrid_raycast_figures,
     VIEW3D_PT_hybrid_raycast_parts,
+    VIEW3D_PT_hybrid_raycast_points,
     VIEW3D_PT_hybrid_raycast_settings,
     VIEW3D_PT_hybrid_raycast_trace,
 )

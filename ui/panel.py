@@ -9,7 +9,7 @@ and tracing (camera passes, AO bake).  Everything drawn here is also a property 
 
 import bpy
 
-from ..settings import PARTS, RUNNING, figures_from_props
+from ..settings import PARTS, POINTS, RUNNING, figures_from_props
 from . import plot
 
 
@@ -230,6 +230,35 @@ class VIEW3D_PT_hybrid_raycast_parts(_Base, bpy.types.Panel):
             return
         col = layout.column(align=True)
         for text, icon in part_lines(described):
+            col.label(text=text, icon=icon)
+
+
+def point_lines(plan: dict) -> list[tuple[str, str]]:
+    """(text, icon) lines of a scene's latest closest-point decision (``settings.POINTS``)."""
+    names = {"grid": "Grid", "bvh": "BVH"}
+    be = plan.get("break_even")
+    out = [(f"{names.get(plan['kind'], plan['kind'])} for {plan['points']:,} points, {plan['triangles']:,} triangles",
+            "CHECKMARK")]
+    if plan.get("estimates"):
+        out.append(("BVH beats the grid " + ("never" if be is None else "at once" if be == 0 else
+                                             f"from {be:,.0f} points"), "BLANK1"))
+        out.append((f"Grid sample: {plan['sample']:,} points", "BLANK1"))
+    out.append((f"({plan['reason']})", "BLANK1"))
+    return out
+
+
+class VIEW3D_PT_hybrid_raycast_points(_Base, bpy.types.Panel):
+    bl_label = "Closest Points"
+    bl_parent_id = "VIEW3D_PT_hybrid_raycast"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        plan = POINTS.get(context.scene.name)
+        if not plan:
+            self.layout.label(text="No closest-point query yet (api.closest)", icon="INFO")
+            return
+        col = self.layout.column(align=True)
+        for text, icon in point_lines(plan):
             col.label(text=text, icon=icon)
 
 

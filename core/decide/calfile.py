@@ -26,6 +26,7 @@ from ..atomic import atomic_path
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, CountFit, KindFit, Measurement, SceneRecord,
                    Prior, describe_fit, fit, fit_counts, grid_estimate, grid_laws, prior)
 from .cost import COUNT_FALLBACK, COUNT_TERMS
+from .points import PointModel
 
 #: bump when the JSON layout or the meaning of a field changes.  3: constants
 #: stated at a reference size (the 'power' model's x_ref_B / x_ref_R, a count model's refs)
@@ -121,6 +122,9 @@ class Calibration:
     #: per-ray time models on the grid sample's work counts, {'grid' | kind: CountFit}
     #: (``cost.fit_counts``); empty in files made before them: the plan then times its sample
     counts: dict = field(default_factory=dict)
+    #: the point queries' decision (``points.PointModel.to_dict``); empty in files made before
+    #: it and in calibrations run without it: ``point_model`` then takes the shipped one's
+    points: dict = field(default_factory=dict)
     #: (the scenes list, the spread, ``cost.grid_laws`` of them): the grid's laws, fitted on first use
     _grid_laws: tuple | None = field(default=None, repr=False, compare=False)
     #: (the scenes list, the spread, (log2 K, [(low, median, high)]) per measured sample size or
@@ -210,6 +214,12 @@ class Calibration:
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------
+    def point_model(self) -> PointModel | None:
+        """The point queries' decision constants: this calibration's, else the shipped
+        defaults' (None when neither has them)."""
+        points = self.points or (None if self.source == "shipped defaults" else load_default().points)
+        return PointModel.from_dict(points) if points else None
+
     def refitted(self, model: str = DEFAULT_MODEL) -> "Calibration":
         """The same records fitted again with ``model`` and the current count models (no new
         timing): an older file's constants become what this package states and predicts.
@@ -262,7 +272,10 @@ class Calibration:
                                          float(v["high"]), int(v.get("scenes", 0)), str(v.get("form", "linear")),
                                          tuple(float(r) for r in v.get("refs", ())))
                         for k, v in d.get("counts", {}).items()},
+                points=dict(d.get("points") or {}),
             )
+            if cal.points:
+                PointModel.from_dict(cal.points)  # malformed constants fail here, not in a query
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise CalibrationError(f"malformed calibration data ({type(e).__name__}: {e})") from None
         if model not in MODELS:

@@ -20,6 +20,7 @@ from ..mesh import TriangleMesh
 from .calfile import Calibration
 from .cost import DEFAULT_MODEL, DEFAULT_SPREAD, Measurement, SceneRecord, fit, fit_counts, nlog2n
 from .load_watch import QUIET_SHARE, in_passes, quiet_notes
+from .points import calibrate_points
 from .settle import settle_before_build
 from .work import Work, grid_work, traversal_counts
 
@@ -238,6 +239,7 @@ def calibrate(
     settle: bool | None = None,
     quiet: float | None = QUIET_SHARE,
     beside=None,
+    points: bool = True,
 ) -> Calibration:
     """Measure every structure in ``kinds`` on each scene and fit the model.
 
@@ -260,6 +262,8 @@ def calibrate(
     quiet: a round of a scene's measurements during which other processes took more than
     this share of the machine's CPU is taken again (``interleaved``; None: never); the
     calibration's notes say how many were, and the largest share in the rounds kept.
+    points: also measure the point queries on the scenes (``points.calibrate_points``) for
+    their decision.
     beside: (scene_jobs, done): other scenes' ``in_passes`` jobs, run in the same passes
     after the calibration's own scenes (an evaluation's truths: the constants and the
     truths then come from the same minutes of the machine); ``done(runs, shares)`` gets
@@ -355,6 +359,10 @@ def calibrate(
         beside[1](runs[len(records):], per_scene[len(records):])
     runs, per_scene = runs[: len(records)], per_scene[: len(records)]
     shares = [x for got in per_scene for x in got]
+    point_model = {}
+    if points:
+        point_model = calibrate_points([(rec.name, mesh) for rec, (mesh, _) in zip(records, plans)], threads=threads,
+                                       progress=lambda f, msg: report(0.99, msg)).to_dict()
     plans.clear()  # the scenes' meshes
     for rec, got in zip(records, runs):
         rec.kinds = {k: median_measurement(v) for k, v in got.items()}
@@ -368,5 +376,5 @@ def calibrate(
     return Calibration(
         fits=fits, scenes=records, model=model, spread=tuple(spread), rays_per_scene=m_rays, scale=scale,
         threads=threads, duration_s=duration, created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        source="measured", notes=notes, counts=counts,
+        source="measured", notes=notes, counts=counts, points=point_model,
     )
