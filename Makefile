@@ -18,7 +18,7 @@ ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
 # This machine's package (the real-Blender suite installs it).
 ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-frames bench-proximity report docs clean
+.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-frames bench-proximity bench-point-decision report docs clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -139,6 +139,11 @@ bench-frames: $(VENV)/.stamp
 ## 20k and 1M triangles, and the winding number's tree against its exact sum (timing lock held).
 bench-proximity: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/bench_proximity.py $(BENCH_ARGS)
+
+## The decision for point queries (closest point: grid or BVH) against measured break-evens on the
+## evaluation set's halves, with the shipped constants (timing lock held; about a minute a half).
+bench-point-decision: $(VENV)/.stamp
+	flock /tmp/hrc-bench.lock $(PY) scripts/point_decision.py --model-from-calibration --scenes ../shared/eval/tuning --scenes ../shared/eval/final $(BENCH_ARGS)
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes,
 ## the calibration and the truths in the same passes (about 42 minutes on the 2-core VM, 13 with

@@ -56,11 +56,22 @@ def proximity_job(scene, job: Job, *, view_layer=None, target=None, to_object: s
         raise NoGeometry(f"no triangles to measure against: {what} has none visible")
     points, _, note = passes.bake_vertices(ob, depsgraph, "measure")
     sub = core.TriangleMesh(mesh.vertices, mesh.triangles[keep])
-    job.fraction, job.text = 0.2, f"building a BVH over {int(keep.sum()):,} triangles"
-    acc = yield from job.call(core.build, sub, "bvh")
-    job.fraction, job.text = 0.5, f"measuring {len(points):,} vertices"
     md = float(max_distance) if max_distance and max_distance > 0 else math.inf
-    near = yield from job.call(acc.closest, points, md)
+    if other is not None:  # the sign needs the BVH's winding number: it answers the distances too
+        job.fraction, job.text = 0.2, f"building a BVH over {int(keep.sum()):,} triangles"
+        acc = yield from job.call(core.build, sub, "bvh")
+        job.fraction, job.text = 0.5, f"measuring {len(points):,} vertices"
+        near = yield from job.call(acc.closest, points, md)
+        kind = "bvh"
+    else:  # the decision for point queries: the grid's sample, then the grid or a BVH for the rest
+        from .calibrate import load_calibration
+
+        job.fraction, job.text = 0.2, f"building a grid over {int(keep.sum()):,} triangles"
+        grid = yield from job.call(core.build, sub, "grid")
+        job.fraction, job.text = 0.4, f"measuring {len(points):,} vertices"
+        near, kind, _ = yield from job.call(core.decide.points.closest_planned, points, md,
+                                            load_calibration()[0].point_model(), grid,
+                                            lambda: core.build(sub, "bvh"), sub.triangle_count)
     values = np.where(near.found, near.distance, md if math.isfinite(md) else np.nan)
     if other is not None:
         job.fraction, job.text = 0.8, "signs: the winding number"
@@ -68,7 +79,7 @@ def proximity_job(scene, job: Job, *, view_layer=None, target=None, to_object: s
         values = np.where(inside, -values, values)
     job.check()
     return {"object": ob, "values": values.astype(np.float32), "found": near.found, "to": other,
-            "attribute": attribute, "before": before, "view_layer": vl, "max_distance": md,
+            "attribute": attribute, "before": before, "view_layer": vl, "max_distance": md, "structure": kind,
             "notes": [note] if note else []}
 
 
@@ -100,7 +111,8 @@ def apply_proximity(scene, result) -> list[tuple[str, str]]:
         msgs.append(("WARNING", f"{missed:,} vertices had nothing within Max Distance: written as {far}"))
     what = f"signed distance to '{result['to'].name}'" if result["to"] is not None else "distance to the nearest other geometry"
     stats = f": min {float(v.min()):.4g}, max {float(v.max()):.4g}" if v.size else ""
-    msgs.append(("INFO", f"baked the {what} of {len(result['values']):,} vertices of '{ob.name}' into '{attr.name}'{stats}"))
+    msgs.append(("INFO", f"baked the {what} of {len(result['values']):,} vertices of '{ob.name}' into '{attr.name}'{stats}"
+                         f" (searched by the {'grid' if result['structure'] == 'grid' else 'BVH'})"))
     return msgs
 
 

@@ -599,30 +599,15 @@ def closest_planned(s, p, md, structure: str, grid_config: dict, calibration=Non
         s.point_plan = plan
         return s.structure("bvh").closest(p, md), "bvh", plan
     grid = next((a for (k, _), a in s.structures.items() if k == "grid"), None) or s.structure("grid", **grid_config)
-    m = len(p)
-    k = core.decide.points.sample_size(m)
-    rows = np.arange(k, dtype=np.int64) * m // max(k, 1)
-    work = [0, 0, 0, 0]
-    got = core.proximity.closest_grid(grid.cell_index(), p[rows], md, work=work)
     if calibration is None:
         from .calibrate import load_calibration
 
         calibration = load_calibration()[0]
-    plan = core.decide.points.decide(calibration.point_model(), s.mesh.triangle_count, m - k, work, built={"grid"})
+    got, kind, plan = core.decide.points.closest_planned(p, md, calibration.point_model(), grid,
+                                                         lambda: s.structure("bvh"), s.mesh.triangle_count)
     s.point_plan = plan
-    settings.POINTS[s._summary.get("scene", "")] = dict(plan.to_dict(), points=m, triangles=s.mesh.triangle_count)
-    if k == m:
-        return got, "grid", plan
-    rest = np.ones(m, bool)
-    rest[rows] = False
-    acc = grid if plan.kind == "grid" else s.structure(plan.kind)
-    more = acc.closest(p[rest], md)
-    out = core.proximity.Nearest(np.empty(m), np.empty(m, np.int32), np.empty((m, 3)), np.empty(m, np.float32),
-                                 np.empty(m, np.float32))
-    for f in ("distance", "triangle", "points", "u", "v"):
-        getattr(out, f)[rows] = getattr(got, f)
-        getattr(out, f)[rest] = getattr(more, f)
-    return out, plan.kind, plan
+    settings.POINTS[s._summary.get("scene", "")] = dict(plan.to_dict(), points=len(p), triangles=s.mesh.triangle_count)
+    return got, kind, plan
 
 
 def closest(points, *, max_distance=np.inf, depsgraph=None, selected_only: bool = False, smooth: bool = False,

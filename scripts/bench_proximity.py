@@ -4,9 +4,9 @@ points, in one run.
 
     flock /tmp/hrc-bench.lock .venv/bin/python scripts/bench_proximity.py [--repeats 3]
 
-Scenes: flat triangle grids of about 20k and 1M triangles in the unit square (the issue's),
-and the 1M-triangle Suzanne of the engine table when --suzanne is given; points uniform in
-the scene's box grown by a fifth.  Ours answers ``--points`` points a run (build timed apart),
+Scenes: flat triangle grids of about 20k and 1M triangles in the unit square (the issue's);
+points uniform in the scene's box grown by a fifth.  Ours answers ``--points`` points a run
+on the BVH and on the grid (builds timed apart),
 the BVHTree loop ``--loop-points`` of them; rates are queries per second, medians of
 ``--repeats`` runs, ratio = ours / BVHTree's.  Also the winding number's tree against its
 exact sum on a closed sphere (max |error|, inside/outside agreement where |w - 0.5| > 0.1).
@@ -98,24 +98,27 @@ def main(argv=None):
         have_bpy = False
     print(f"closest point: {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}, {args.points:,} points (ours), "
           f"{args.loop_points:,} (BVHTree loop), medians of {args.repeats}")
-    print("| scene | triangles | build s | ours queries/s | BVHTree.find_nearest loop /s | ratio | "
-          "Open3D compute_closest_points /s | ours / Open3D | max abs(d - Open3D's d) |")
-    print("|---|--:|--:|--:|--:|--:|--:|--:|--:|")
+    print("| scene | triangles | BVH build s | ours (BVH) queries/s | ours (grid) /s | BVHTree.find_nearest loop /s | "
+          "ratio (BVH) | Open3D compute_closest_points /s | ours / Open3D | max abs(d - Open3D's d) |")
+    print("|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
     for n in (int(x) for x in args.sizes.split(",")):
         mesh = flat_grid(n)
-        builds, ours, loop = [], [], []
+        builds, ours, loop, grid = [], [], [], []
         for r in range(args.repeats):
-            acc = core.build(mesh, "bvh")
             pts = points_in(mesh, args.points, seed=r)
-            t0 = time.perf_counter()
-            acc.closest(pts[:1000])  # the tree index is made on first use
-            builds.append(acc.build_time + time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            acc.closest(pts)
-            ours.append(len(pts) / (time.perf_counter() - t0))
+            for kind, rates in (("bvh", ours), ("grid", grid)):
+                acc = core.build(mesh, kind)
+                t0 = time.perf_counter()
+                acc.closest(pts[:1000])  # the point index is made on first use
+                if kind == "bvh":
+                    builds.append(acc.build_time + time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                acc.closest(pts)
+                rates.append(len(pts) / (time.perf_counter() - t0))
             if have_bpy:
                 loop.append(bvhtree_rate(mesh, pts[: args.loop_points]))
         o = statistics.median(ours)
+        g = statistics.median(grid)
         b = statistics.median(loop) if loop else float("nan")
         peer = open3d_points(mesh, points_in(mesh, args.points, seed=0), args.repeats)
         if peer is None:
@@ -125,7 +128,7 @@ def main(argv=None):
             rate = info["points"] / info["closest_s"]
             mine = core.build(mesh, "bvh").closest(points_in(mesh, args.points, seed=0)).distance
             o3d = f"{rate:,.0f} | {o / rate:.2f} | {np.abs(mine - dist).max():.1e}"
-        print(f"| flat grid | {mesh.triangle_count:,} | {statistics.median(builds):.2f} | {o:,.0f} | "
+        print(f"| flat grid | {mesh.triangle_count:,} | {statistics.median(builds):.2f} | {o:,.0f} | {g:,.0f} | "
               f"{b:,.0f} | {o / b:.2f} | {o3d} |")
     mesh = S.sphere(20000)
     pts = points_in(mesh, 4000, seed=9)

@@ -1,7 +1,8 @@
 """The point queries' decision (closest point: grid or BVH) against measured truths on held-out meshes.
 
     flock /tmp/hrc-bench.lock .venv/bin/python scripts/point_decision.py --scenes ../shared/eval/tuning
-        [--scale default] [--model out/point_model.json] [--save-model out/point_model.json]
+        [--scale default | --model FILE | --model-from-calibration [FILE]] [--save-model FILE] [--save-records FILE]
+    make bench-point-decision    # the shipped constants on both halves
 
 Fits the point decision's constants on the calibration scenes of ``--scale`` (synthetic,
 ``core.decide.points.calibrate_points``), or reads them from ``--model``, then measures each
@@ -40,11 +41,21 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=Path, action="append", default=[])
     ap.add_argument("--scale", default="default")
     ap.add_argument("--model", type=Path, help="read the constants from this file instead of calibrating")
+    ap.add_argument("--model-from-calibration", nargs="?", const="shipped", metavar="FILE",
+                    help="take the constants of a calibration file (default: the shipped one) instead of calibrating")
     ap.add_argument("--save-model", type=Path)
     ap.add_argument("--save-records", type=Path, help="write the held-out meshes' measured records (JSON) here")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    if args.model:
+    if args.model_from_calibration:
+        from hybrid_raycast.core import decide
+
+        path = decide.DEFAULT_PATH if args.model_from_calibration == "shipped" else Path(args.model_from_calibration)
+        model = decide.load(path, check_version=False).point_model()
+        if model is None:
+            raise SystemExit(f"{path} holds no point-query constants")
+        print(f"constants from {path}")
+    elif args.model:
         model = P.PointModel.from_dict(json.loads(args.model.read_text()))
         print(f"constants from {args.model}")
     else:
@@ -56,10 +67,11 @@ def main(argv=None) -> int:
         args.save_model.write_text(json.dumps(model.to_dict()))
     print(f"builds {model.builds}\ngrid terms (s per ring, cell, triangle) {model.grid_terms}\n"
           f"bvh terms {model.bvh_terms}\nspread {model.spread}")
-    records = []
+    records, halves = [], []
     for d in args.scenes:
-        for f in sorted(d.glob("*.obj")):
-            records += P.measure_points(f.stem, load_obj(f))
+        mine = [r for f in sorted(d.glob("*.obj")) for r in P.measure_points(f.stem, load_obj(f))]
+        records += mine
+        halves.append((d, mine))
     if args.save_records:
         args.save_records.parent.mkdir(parents=True, exist_ok=True)
         args.save_records.write_text(json.dumps([r.__dict__ for r in records]))
@@ -73,7 +85,12 @@ def main(argv=None) -> int:
         err = "-" if c["error"] is None else f"{c['error']:.0%}"
         print(f"| {c['scene']} | {c['triangles']:,} | {c['points_kind']} | {_fmt(c['break_even_true'])} | "
               f"{_fmt(c['break_even_est'])} | {err} | {ok} / {len(c['picks'])} |")
-    print(f"\nmedian break-even error {ev['median_error']:.1%} over {ev['finite']} cases with both finite "
+    for d, mine in halves if len(halves) > 1 else ():
+        h = P.evaluate(model, mine)
+        print(f"\n{d}: median break-even error {h['median_error']:.1%} over {h['finite']} cases with both finite "
+              f"({h['agree_never']} both never); correct picks {h['picks']}/{h['picked']} = "
+              f"{h['picks'] / max(h['picked'], 1):.1%}")
+    print(f"\nall: median break-even error {ev['median_error']:.1%} over {ev['finite']} cases with both finite "
           f"({ev['agree_never']} where both say never, {len(ev['cases']) - ev['finite'] - ev['agree_never']} "
           f"where one does); correct picks {ev['picks']}/{ev['picked']} = {ev['picks'] / max(ev['picked'], 1):.1%} "
           f"where the measured totals differ by more than 10%; {time.perf_counter() - t0:.0f} s")

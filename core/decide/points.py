@@ -315,3 +315,27 @@ def evaluate(model: PointModel, records, points=EVALUATION_POINTS, margin: float
                       "break_even_true": be_true, "break_even_est": be_est, "error": err, "picks": picks})
     return {"cases": cases, "median_error": float(np.median(errors)) if errors else math.nan, "finite": len(errors),
             "picks": right, "picked": judged, "agree_never": never}
+
+
+def closest_planned(points, max_distance, model: PointModel | None, grid, bvh_of, triangles: int):
+    """(``proximity.Nearest``, the kind that answered the rest, ``PointPlan``): the decision
+    run on checked ``points``.  ``grid`` (a built ``UniformGrid``) answers an evenly spaced
+    sample (``sample_size``) with its work counts; ``decide`` weighs the rest, the grid's
+    build sunk; the grid or ``bvh_of()`` (a BVH, built when called) answers them."""
+    m = len(points)
+    k = sample_size(m)
+    rows = np.arange(k, dtype=np.int64) * m // max(k, 1)
+    work = [0, 0, 0, 0]
+    got = proximity.closest_grid(grid.cell_index(), points[rows], max_distance, work=work)
+    plan = decide(model, triangles, m - k, work, built={"grid"})
+    if k == m:
+        return got, "grid", plan
+    rest = np.ones(m, bool)
+    rest[rows] = False
+    more = (grid if plan.kind == "grid" else bvh_of()).closest(points[rest], max_distance)
+    out = proximity.Nearest(np.empty(m), np.empty(m, np.int32), np.empty((m, 3)), np.empty(m, np.float32),
+                            np.empty(m, np.float32))
+    for f in ("distance", "triangle", "points", "u", "v"):
+        getattr(out, f)[rows] = getattr(got, f)
+        getattr(out, f)[rest] = getattr(more, f)
+    return out, plan.kind, plan
