@@ -236,9 +236,7 @@ class Accel:
         parts = self._point_parts(len(p))
         if len(parts) == 1:
             return search(p, max_distance)
-        got = self._in_pool(lambda sl: search(p[sl], max_distance), parts)
-        return proximity.Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in
-                                   ("distance", "triangle", "points", "u", "v")))
+        return proximity.Nearest.concat(self._in_pool(lambda sl: search(p[sl], max_distance), parts))
 
     def winding_number(self, points, accuracy: float = proximity.ACCURACY) -> np.ndarray:
         """(M,) float64 generalized winding number of each point (1 inside a closed mesh, 0

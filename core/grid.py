@@ -215,6 +215,16 @@ class UniformGrid(Accel):
         index = self.cell_index()
         return lambda p, md: proximity.closest_grid(index, p, md)
 
+    def closest_within(self, points, max_distance, reach: int):
+        """(``proximity.Nearest``, left): ``closest`` on the grid's cells, on the threads,
+        leaving unanswered the points whose rings would span more than ``reach`` cells
+        (``proximity.closest_grid``)."""
+        index = self.cell_index()
+        p = proximity.check_points(points)
+        got = self._in_pool(lambda sl: proximity.closest_grid(index, p[sl], max_distance, reach=reach),
+                            self._point_parts(len(p)))
+        return proximity.Nearest.concat(n for n, _ in got), np.concatenate([left for _, left in got])
+
     def cell_index(self) -> proximity.CellIndex:
         """The grid's own cells as the closest point's index (``proximity.CellIndex``), kept."""
         index = getattr(self, "_cells", None)

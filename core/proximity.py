@@ -76,6 +76,25 @@ class Nearest:
     def found(self) -> np.ndarray:
         return self.triangle >= 0
 
+    FIELDS = ("distance", "triangle", "points", "u", "v")
+
+    @classmethod
+    def concat(cls, parts) -> "Nearest":
+        """The answers of consecutive parts of the points, as one."""
+        parts = list(parts)
+        return parts[0] if len(parts) == 1 else cls(*(np.concatenate([getattr(n, f) for n in parts])
+                                                      for f in cls.FIELDS))
+
+    @classmethod
+    def gather(cls, m: int, parts) -> "Nearest":
+        """The answers of (rows, ``Nearest``) parts that cover rows 0..m-1, each in its rows."""
+        out = cls(np.empty(m), np.empty(m, np.int32), np.empty((m, 3)), np.empty(m, np.float32),
+                  np.empty(m, np.float32))
+        for rows, got in parts:
+            for f in cls.FIELDS:
+                getattr(out, f)[rows] = getattr(got, f)
+        return out
+
 
 # -- arguments -------------------------------------------------------------------------------
 
@@ -507,8 +526,7 @@ def closest_tree(index: TreeIndex, points, max_distance=np.inf) -> Nearest:
     md = check_max_distance(max_distance)
     if len(p) <= POINT_CHUNK:
         return _closest_chunk(index, p, md)
-    got = [_closest_chunk(index, p[a:a + POINT_CHUNK], md) for a in range(0, len(p), POINT_CHUNK)]
-    return Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in ("distance", "triangle", "points", "u", "v")))
+    return Nearest.concat(_closest_chunk(index, p[a:a + POINT_CHUNK], md) for a in range(0, len(p), POINT_CHUNK))
 
 
 class CellIndex:
@@ -613,19 +631,25 @@ CELL_MARGIN = 1e-9
 GRID_WORK = ("points", "rings", "cells", "pairs")
 
 
-def _grid_chunk(index: CellIndex, p, md, work=None) -> Nearest:
-    """The closest point of checked points ``p`` by rings of cells about each point's cell
+def _grid_chunk(index: CellIndex, p, md, work=None, reach=None):
+    """(``Nearest``, left) for checked points ``p`` by rings of cells about each point's cell
     (the nearest cell of the grid for a point outside it): ring r holds the cells at Chebyshev
     distance r; its cells nearer than the point's best distance so far are measured, and a
     point stops once its best is nearer than every cell past the rings searched
     (``_beyond_d2``), so the search is exact; a tie in distance still opens a cell, for the
-    lowest triangle index.  The rings start past the empty cube about the point's cell."""
+    lowest triangle index.  The rings start past the empty cube about the point's cell.
+
+    A point far from every triangle (outside the grid, or deep in empty space) enumerates
+    about (2r + 1)^3 cells before it stops, the grid's weakness: with ``reach``, a point whose
+    rings span more cells than that stops unanswered, ``left`` True (its row of the answer
+    is then meaningless), for a structure that searches far points well."""
     m = len(p)
     best = _fresh_best(m, md)
+    left = np.zeros(m, bool)
     if work is not None:
         work[0] += m
     if m == 0 or len(index) == 0:
-        return _nearest(p, best, index.tv64)
+        return _nearest(p, best, index.tv64), left
     res, stride = index.res, index.stride
     cell = np.clip(np.floor((p - index.lo) / index.cell_size), 0, res - 1).astype(np.int64)
     slack = index.delta + 4.0 * np.spacing(np.abs(index.lo).max() + np.abs(index.hi).max())
@@ -676,19 +700,24 @@ def _grid_chunk(index: CellIndex, p, md, work=None) -> Nearest:
         done = (np.sqrt(best[0][rows]) < bound) | np.isinf(bound)
         rows = rows[~done]
         ring[rows] += 1
-    return _nearest(p, best, index.tv64)
+        if reach is not None and rows.size:
+            spans = np.minimum(2 * ring[rows, None] + 1, 2 * res - 1)
+            far = spans.prod(axis=1) > reach
+            left[rows[far]] = True
+            rows = rows[~far]
+    return _nearest(p, best, index.tv64), left
 
 
-def closest_grid(index: CellIndex, points, max_distance=np.inf, work=None) -> Nearest:
+def closest_grid(index: CellIndex, points, max_distance=np.inf, work=None, reach=None):
     """The closest point by rings of grid cells (``_grid_chunk``), in chunks of
     ``POINT_CHUNK`` points; ``work``, a list of four numbers, gains the search's counts
-    (``GRID_WORK``)."""
+    (``GRID_WORK``).  Without ``reach`` the ``Nearest`` of every point; with it (``Nearest``,
+    left): the points whose rings would span more than ``reach`` cells are left unanswered."""
     p = check_points(points)
     md = check_max_distance(max_distance)
-    if len(p) <= POINT_CHUNK:
-        return _grid_chunk(index, p, md, work)
-    got = [_grid_chunk(index, p[a:a + POINT_CHUNK], md, work) for a in range(0, len(p), POINT_CHUNK)]
-    return Nearest(*(np.concatenate([getattr(g, f) for g in got]) for f in ("distance", "triangle", "points", "u", "v")))
+    got = [_grid_chunk(index, p[a:a + POINT_CHUNK], md, work, reach) for a in range(0, max(len(p), 1), POINT_CHUNK)]
+    near = Nearest.concat(n for n, _ in got)
+    return near if reach is None else (near, np.concatenate([left for _, left in got]))
 
 
 def winding_number_tree(index: TreeIndex, points, accuracy: float = ACCURACY) -> np.ndarray:

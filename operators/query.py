@@ -528,7 +528,9 @@ class ClosestResult:
         triangle, u, v: as ``CastResult``'s (-1 / 0 where not found)
     smooth_normals, uv: with ``smooth=True`` / ``uv=True``, as ``CastResult``'s; else None
     structure: the structure that answered the points ('grid' or 'bvh' as the decision for
-        point queries chose, or the one named; 'embree' searches a BVH built beside it)
+        point queries chose, or the one named; 'embree' searches a BVH built beside it).  When
+        the decision keeps the grid, points too far from every triangle for its rings still go
+        to a BVH (``core.decide.points.REACH``; the panel counts them)
     break_even: the points from which the BVH beats the grid, as the decision estimated them
         (inf: never; NaN: no decision was made, a structure was named or the BVH was built)
     """

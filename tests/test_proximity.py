@@ -337,3 +337,42 @@ def test_a_calibration_keeps_its_point_model_and_an_old_file_takes_the_shipped_o
     assert back.point_model().grid_terms == mine.point_model().grid_terms
     old = core.decide.Calibration(dict(cal.fits), source="measured")
     assert old.point_model().grid_terms == cal.point_model().grid_terms
+
+
+def test_a_planned_search_hands_far_points_to_the_bvh_and_answers_every_point_exactly(monkeypatch):
+    """Points far outside the scene would cost the grid ~(2r+1)^3 cells each: a planned search
+    (``closest_planned``) leaves those past ``REACH`` to the BVH, built once, and the answers
+    are still the brute force's."""
+    from hybrid_raycast.core.decide import points as P
+
+    mesh = S.torus(2000, seed=2)
+    near = around(mesh, 600, seed=3, pad=0.05)
+    far = around(mesh, 200, seed=4, pad=30.0)
+    pts = np.concatenate([near, far])
+    want = core.build(mesh, "brute").closest(pts)
+    grid = core.build(mesh, "grid")
+    built = []
+
+    def bvh():
+        built.append(1)
+        return core.build(mesh, "bvh")
+
+    monkeypatch.setattr(P, "REACH", 4000)
+    model = P.fit_points(_records())
+    got, kind, plan = P.closest_planned(pts, np.inf, model, grid, bvh, mesh.triangle_count)
+    assert np.array_equal(got.triangle, want.triangle) and np.array_equal(got.distance, want.distance)
+    assert plan.handed_over > 0 and len(built) == 1
+    _, left = core.proximity.closest_grid(grid.cell_index(), far, reach=4000)
+    assert left.mean() > 0.5  # most far points would have needed more than REACH cells
+
+
+def test_far_points_in_the_sample_make_the_bvh_free_for_the_decision():
+    """The BVH the far points need is built anyway: the grid then keeps the rest only where it
+    is faster per point."""
+    from hybrid_raycast.core.decide import points as P
+
+    model = P.fit_points(_records())
+    box = next(r for r in model.records if r.points_kind == "box" and r.triangles == 10000)
+    alone = P.decide(model, 10000, 20, box.sample_work, built={"grid"})
+    shared = P.decide(model, 10000, 20, box.sample_work, built={"grid"}, far_share=0.1)
+    assert alone.kind == "grid" and shared.kind == "bvh" and "far points" in shared.reason

@@ -243,6 +243,8 @@ def point_lines(plan: dict) -> list[tuple[str, str]]:
         out.append(("BVH beats the grid " + ("never" if be is None else "at once" if be == 0 else
                                              f"from {be:,.0f} points"), "BLANK1"))
         out.append((f"Grid sample: {plan['sample']:,} points", "BLANK1"))
+    if plan.get("handed_over"):
+        out.append((f"{plan['handed_over']:,} points too far for the grid: the BVH answered them", "BLANK1"))
     out.append((f"({plan['reason']})", "BLANK1"))
     return out
 

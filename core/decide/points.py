@@ -39,6 +39,10 @@ from .rule import over_life
 #: of them when there are fewer)
 SAMPLE_SHARE = 0.02
 SAMPLE_MIN = 256
+#: the most cells a point's rings may span on the grid in a planned search (``closest_planned``):
+#: a point that needs more (far outside the scene, deep in empty space) goes to the BVH, which
+#: answers it in a few dozen box tests
+REACH = 1 << 13
 #: the kinds the point decision weighs
 KINDS = ("grid", "bvh")
 #: points per calibration scene and kind of points: (box, near, on the surface); the box's are
@@ -254,24 +258,34 @@ class PointPlan:
     break_even: float
     sample: int
     reason: str = ""
+    #: points too far from every triangle for the grid (``closest_planned``'s ``REACH``),
+    #: answered by the BVH
+    handed_over: int = 0
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "estimates": {k: c.to_dict() for k, c in self.estimates.items()},
                 "totals": self.totals, "break_even": self.break_even if math.isfinite(self.break_even) else None,
-                "sample": self.sample, "reason": self.reason}
+                "sample": self.sample, "reason": self.reason, "handed_over": self.handed_over}
 
 
-def decide(model: PointModel | None, triangles: int, points: int, sample_work, built=()) -> PointPlan:
+def decide(model: PointModel | None, triangles: int, points: int, sample_work, built=(), far_share: float = 0.0) -> PointPlan:
     """The structure for ``points`` points still to answer after the grid's sample (whose
     ``GRID_WORK`` counts are ``sample_work``), ``built`` kinds' builds sunk: the least
-    estimated total (``rule.over_life``).  Without a model (no calibration of point queries)
-    the BVH, said so in the reason."""
+    estimated total (``rule.over_life``).  ``far_share``: the sample's share of points too far
+    for the grid (``REACH``); where the rest should hold one, the BVH those points need is
+    built whichever structure answers the rest, so its build weighs on neither.  Without a model (no calibration of point
+    queries) the BVH, said so in the reason."""
     n_sample = int(np.asarray(sample_work)[0]) if len(sample_work) else 0
     if model is None:
         return PointPlan("bvh", {}, {}, math.nan, n_sample, "no point-query calibration: the BVH")
     est = model.estimates(triangles, sample_work)
+    far = far_share * points >= 1 and "bvh" not in built
+    if far:  # the BVH will be built for the far points whichever answers the rest: its build weighs on neither
+        built = set(built) | {"bvh"}
     kind, totals, be, _ = over_life(est, points, built)
-    return PointPlan(kind, est, totals, be, n_sample, f"least estimated total for {points:,} points")
+    why = f"least estimated total for {points:,} points" + (
+        "; the sample's far points need the BVH anyway" if far else "")
+    return PointPlan(kind, est, totals, be, n_sample, why)
 
 
 # -- evaluation on held-out meshes -------------------------------------------------------------------
@@ -321,21 +335,35 @@ def closest_planned(points, max_distance, model: PointModel | None, grid, bvh_of
     """(``proximity.Nearest``, the kind that answered the rest, ``PointPlan``): the decision
     run on checked ``points``.  ``grid`` (a built ``UniformGrid``) answers an evenly spaced
     sample (``sample_size``) with its work counts; ``decide`` weighs the rest, the grid's
-    build sunk; the grid or ``bvh_of()`` (a BVH, built when called) answers them."""
+    build sunk; the grid or ``bvh_of()`` (a BVH, built when called) answers them.  The grid
+    searches no point farther than ``REACH`` cells' worth of rings: such points (far outside
+    the scene, deep in empty space) go to the BVH, so no point costs the grid more than that
+    (``PointPlan.handed_over`` counts them)."""
     m = len(points)
     k = sample_size(m)
     rows = np.arange(k, dtype=np.int64) * m // max(k, 1)
     work = [0, 0, 0, 0]
-    got = proximity.closest_grid(grid.cell_index(), points[rows], max_distance, work=work)
-    plan = decide(model, triangles, m - k, work, built={"grid"})
-    if k == m:
-        return got, "grid", plan
-    rest = np.ones(m, bool)
-    rest[rows] = False
-    more = (grid if plan.kind == "grid" else bvh_of()).closest(points[rest], max_distance)
-    out = proximity.Nearest(np.empty(m), np.empty(m, np.int32), np.empty((m, 3)), np.empty(m, np.float32),
-                            np.empty(m, np.float32))
-    for f in ("distance", "triangle", "points", "u", "v"):
-        getattr(out, f)[rows] = getattr(got, f)
-        getattr(out, f)[rest] = getattr(more, f)
-    return out, plan.kind, plan
+    out, left_sample = proximity.closest_grid(grid.cell_index(), points[rows], max_distance, work=work, reach=REACH)
+    made = []
+
+    def tree():  # the BVH, built once whoever asks first
+        if not made:
+            made.append(bvh_of())
+        return made[0]
+
+    plan = decide(model, triangles, m - k, work, built={"grid"}, far_share=float(left_sample.mean()) if k else 0.0)
+    parts = [(rows, out, left_sample)]
+    if k < m:
+        rest = np.ones(m, bool)
+        rest[rows] = False
+        rest = np.flatnonzero(rest)
+        if plan.kind == "grid":
+            more, left_rest = grid.closest_within(points[rest], max_distance, REACH)
+        else:
+            more, left_rest = tree().closest(points[rest], max_distance), np.zeros(len(rest), bool)
+        parts.append((rest, more, left_rest))
+    far = np.concatenate([r[left] for r, _, left in parts])
+    plan.handed_over = int(far.size)
+    got = [(r, n) for r, n, _ in parts] + ([(far, tree().closest(points[far], max_distance))] if far.size else [])
+    answer = proximity.Nearest.gather(m, got)  # the far points' BVH answers last, over the grid's
+    return answer, plan.kind, plan
