@@ -31,8 +31,8 @@ import threading
 
 import numpy as np
 
-from .accel import LOCKSTEP_CHUNK, Accel
 from . import proximity
+from .accel import LOCKSTEP_CHUNK, Accel
 from .intersect import UNIT_ROUNDOFF, NearestHits, Rays, intersect
 
 F64 = np.float64

@@ -344,11 +344,7 @@ class TreeIndex:
 
     def leaf_pairs(self, owner, leaf):
         """(owner repeated, triangle) for every triangle of each (owner, leaf) pair."""
-        n = self.leaf_count[leaf]
-        own = np.repeat(owner, n)
-        first = np.repeat(self.leaf_start[leaf], n)
-        offset = np.arange(own.size) - np.repeat(np.cumsum(n) - n, n)
-        return own, self.leaf_triangles[first + offset]
+        return _expand(owner, self.leaf_start[leaf], self.leaf_count[leaf], self.leaf_triangles)
 
     # -- the winding number's far field: per child slot, area, area centroid, area-weighted
     #    normal (the dipole) and the radius of a ball around the centroid holding the subtree
@@ -461,8 +457,12 @@ def _open(d2_32, best_d2, slack):
 
 def _measure(index: TreeIndex, p, owner, leaf, best):
     """Fold every triangle of each (point ``owner``, ``leaf``) pair into ``best`` exactly."""
-    own, tri = index.leaf_pairs(owner, leaf)
-    c = np.take(index.corner_rows, tri, axis=0)
+    _measure_pairs(index.corner_rows, p, *index.leaf_pairs(owner, leaf), best)
+
+
+def _measure_pairs(corner_rows, p, own, tri, best):
+    """Fold each (point ``own``, triangle ``tri``) pair into ``best`` exactly."""
+    c = np.take(corner_rows, tri, axis=0)
     q = np.take(p, own, axis=0)
     col = [c[:, k] for k in range(9)]
     d2, u, v = closest_on_columns([q[:, k] for k in range(3)], col[0:3], col[3:6], col[6:9])
@@ -583,20 +583,15 @@ class CellIndex:
 
     def cell_pairs(self, owner, cell):
         """(owner repeated, triangle) for every triangle of each (owner, cell) pair."""
-        n = self.count[cell]
-        own = np.repeat(owner, n)
-        first = np.repeat(self.cell_start[cell], n)
-        offset = np.arange(own.size) - np.repeat(np.cumsum(n) - n, n)
-        return own, self.cell_tris[first + offset]
+        return _expand(owner, self.cell_start[cell], self.count[cell], self.cell_tris)
 
 
-def _measure_pairs(corner_rows, p, own, tri, best):
-    """Fold each (point ``own``, triangle ``tri``) pair into ``best`` exactly."""
-    c = np.take(corner_rows, tri, axis=0)
-    q = np.take(p, own, axis=0)
-    col = [c[:, k] for k in range(9)]
-    d2, u, v = closest_on_columns([q[:, k] for k in range(3)], col[0:3], col[3:6], col[6:9])
-    _reduce_pairs(own, tri, d2, u, v, best)
+def _expand(owner, start, count, items):
+    """(owner repeated, item) for every item of each owner's run ``items[start: start + count]``."""
+    own = np.repeat(owner, count)
+    first = np.repeat(start, count)
+    offset = np.arange(own.size) - np.repeat(np.cumsum(count) - count, count)
+    return own, items[first + offset]
 
 
 def _beyond_d2(index: CellIndex, p, cell, r):
@@ -606,18 +601,18 @@ def _beyond_d2(index: CellIndex, p, cell, r):
     lo, hi, cs = index.lo, index.hi, index.cell_size
     out_gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
     base = (out_gap * out_gap).sum(axis=1)
-    best = np.full(len(p), np.inf)
+    out = np.full(len(p), np.inf)
     for k in range(3):
         rest = base - out_gap[:, k] ** 2
         up = cell[:, k] + r + 1  # the first cell past the cube's upper face
         has = up <= index.res[k] - 1
         g = np.maximum(lo[k] + up * cs[k] - p[:, k], 0.0)
-        np.minimum(best, np.where(has, rest + g * g, np.inf), out=best)
+        np.minimum(out, np.where(has, rest + g * g, np.inf), out=out)
         down = cell[:, k] - r  # cells below this one are past the lower face
         has = down >= 1
         g = np.maximum(p[:, k] - (lo[k] + down * cs[k]), 0.0)
-        np.minimum(best, np.where(has, rest + g * g, np.inf), out=best)
-    return best
+        np.minimum(out, np.where(has, rest + g * g, np.inf), out=out)
+    return out
 
 
 #: a cell is opened when its box is within the best distance widened by this relative margin
@@ -661,7 +656,8 @@ def _grid_chunk(index: CellIndex, p, md, work=None, reach=None):
             work[3] += len(o)
 
     # every point starts past the empty cube about its cell: those rings hold nothing
-    ring = index.empty[cell @ stride] + np.where(index.empty[cell @ stride] > 0, 1, 0)
+    empty = index.empty[cell @ stride]
+    ring = np.where(empty > 0, empty + 1, 0)
     rows = np.arange(m)
     while rows.size:
         for r in np.unique(ring[rows]):

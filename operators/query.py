@@ -595,18 +595,18 @@ def closest_planned(s, p, md, structure: str, grid_config: dict, calibration=Non
     as ``s.point_plan``."""
     if structure != "auto":
         return s.structure(structure).closest(p, md), structure, None
-    built = {k for k, _ in s.structures}
-    if "bvh" in built:
+    flat = {key[0]: acc for key, acc in s.structures.items() if key[0] in ("grid", "bvh")}  # not two-level ones
+    if "bvh" in flat:
+        got, kind = flat["bvh"].closest(p, md), "bvh"
         plan = core.decide.points.PointPlan("bvh", {}, {}, float("nan"), 0, "the session's BVH is built")
-        s.point_plan = plan
-        return s.structure("bvh").closest(p, md), "bvh", plan
-    grid = next((a for (k, _), a in s.structures.items() if k == "grid"), None) or s.structure("grid", **grid_config)
-    if calibration is None:
-        from .calibrate import load_calibration
+    else:
+        if calibration is None:
+            from .calibrate import load_calibration
 
-        calibration = load_calibration()[0]
-    got, kind, plan = core.decide.points.closest_planned(p, md, calibration.point_model(), grid,
-                                                         lambda: s.structure("bvh"), s.mesh.triangle_count)
+            calibration = load_calibration()[0]
+        grid = flat.get("grid") or s.structure("grid", **grid_config)
+        got, kind, plan = core.decide.points.closest_planned(p, md, calibration.point_model(), grid,
+                                                             lambda: s.structure("bvh"), s.mesh.triangle_count)
     s.point_plan = plan
     settings.POINTS[s._summary.get("scene", "")] = dict(plan.to_dict(), points=len(p), triangles=s.mesh.triangle_count)
     return got, kind, plan

@@ -125,3 +125,21 @@ def test_closest_decides_between_grid_and_bvh_and_every_structure_answers_the_sa
     assert again.structure == "bvh"
     with pytest.raises(ValueError, match="structure"):
         api.closest(pts, structure="octree")
+
+
+def test_closest_after_casts_of_a_changed_scene_uses_the_session_as_it_is(fresh, addon):
+    """Casts of a scene that changed between calls leave two-level structures in the session;
+    a closest-point query then still decides on the flat ones and answers as Blender does."""
+    scene()
+    api = addon.api
+    d = np.random.default_rng(1).normal(size=(2000, 3))
+    api.cast((0.0, -8.0, 0.5), d)
+    bpy.data.objects["B"].location.x += 0.5
+    bpy.context.view_layer.update()
+    api.cast((0.0, -8.0, 0.5), d)
+    session = addon.operators.session
+    assert any(len(k) == 3 for s in session.SESSIONS.values() for k in s.structures), "no two-level structure"
+    pts = np.random.default_rng(5).uniform([-6, -3, -4], [6, 3, 3], size=(500, 3))
+    c = api.closest(pts)
+    dist, _ = blender_nearest(pts)
+    assert np.allclose(c.distance, dist, rtol=1e-5, atol=1e-5)
