@@ -54,12 +54,12 @@ SETUP_SHARE = 0.1
 #: what each calibration scale measures and costs, for the add-on's settings, its Calibrate
 #: operator and the CLI (one text for all three); the minutes are those of the 2-core
 #: reference machine (``scripts/ship_calibration.py`` prints a calibration's duration)
-FULL_CALIBRATION_MINUTES = 11
+FULL_CALIBRATION_MINUTES = 12
 SCALE_NOTES = {
     "tiny": "Seconds: 8 scenes of 500-1,000 triangles, one pass; rough constants that check the set-up (tests)",
     "quick": "About 3 minutes on 2 cores: 8 scenes, so constants can differ between runs",
     "default": (f"About {FULL_CALIBRATION_MINUTES} minutes on 2 cores: 20 scenes, {RAYS_PER_SCENE['default']:,} rays "
-                f"each, {CALIBRATION_REPEATS} passes over them; the constants the add-on ships"),
+                f"each, {CALIBRATION_REPEATS} passes over them, and the point queries; the constants the add-on ships"),
 }
 #: sample rays on which calibration counts the grid's per-ray work, as a plan does on its K
 #: (``work.DEFAULT_SAMPLES``): the counts are means over the rays, the same for any K but

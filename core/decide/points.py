@@ -1,9 +1,10 @@
 """The paper's decision for point queries (the closest point): for N points, is the grid
 enough, or does a BVH pay for its build?
 
-The grid is cheap to build and searches rings of cells about each point: near the surface
-it is as fast per point as the BVH, farther out it enumerates many empty cells.  The BVH's
-branch and bound costs about the same wherever the point is.  As for rays, the decision
+The grid is cheap to build and searches rings of cells about each point: on the surface it
+is about as fast per point as the BVH, farther out it enumerates many empty cells (a point
+that would need more than ``REACH`` of them goes to the BVH whatever the decision).  The
+BVH's branch and bound costs about the same wherever the point is.  As for rays, the decision
 builds the grid, answers a sample of the points on it (the answers are kept), and from the
 sample's work counts (``proximity.GRID_WORK``) estimates the time per point of both:
 
