@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -30,10 +29,6 @@ core_package()
 from hybrid_raycast.core import scenes as S  # noqa: E402
 from hybrid_raycast.core.decide import points as P  # noqa: E402
 from hybrid_raycast.core.objio import load_obj  # noqa: E402
-
-
-def _fmt(x):
-    return "never" if not math.isfinite(x) else f"{x:,.0f}"
 
 
 def main(argv=None) -> int:
@@ -78,22 +73,11 @@ def main(argv=None) -> int:
     if not records:
         return 0
     ev = P.evaluate(model, records)
-    print("\n| mesh | triangles | points | break-even measured | estimated | error | picks right / judged |")
-    print("|---|--:|---|--:|--:|--:|--:|")
-    for c in ev["cases"]:
-        ok = sum(kt == ke for _, kt, ke in c["picks"])
-        err = "-" if c["error"] is None else f"{c['error']:.0%}"
-        print(f"| {c['scene']} | {c['triangles']:,} | {c['points_kind']} | {_fmt(c['break_even_true'])} | "
-              f"{_fmt(c['break_even_est'])} | {err} | {ok} / {len(c['picks'])} |")
+    print("")
+    print("\n".join(P.table(ev)[:-1]))
     for d, mine in halves if len(halves) > 1 else ():
-        h = P.evaluate(model, mine)
-        print(f"\n{d}: median break-even error {h['median_error']:.1%} over {h['finite']} cases with both finite "
-              f"({h['agree_never']} both never); correct picks {h['picks']}/{h['picked']} = "
-              f"{h['picks'] / max(h['picked'], 1):.1%}")
-    print(f"\nall: median break-even error {ev['median_error']:.1%} over {ev['finite']} cases with both finite "
-          f"({ev['agree_never']} where both say never, {len(ev['cases']) - ev['finite'] - ev['agree_never']} "
-          f"where one does); correct picks {ev['picks']}/{ev['picked']} = {ev['picks'] / max(ev['picked'], 1):.1%} "
-          f"where the measured totals differ by more than 10%; {time.perf_counter() - t0:.0f} s")
+        print(f"{d}: {P.summary_line(P.evaluate(model, mine))}")
+    print(f"all: {P.summary_line(ev)}; {time.perf_counter() - t0:.0f} s")
     return 0
 
 

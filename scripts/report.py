@@ -59,7 +59,7 @@ from _package import ROOT, SHARED_SCENES, core_package  # noqa: E402
 core_package()
 
 from hybrid_raycast.core import load_obj, scenes as scene_lib  # noqa: E402
-from hybrid_raycast.core.decide import cost, evaluate  # noqa: E402
+from hybrid_raycast.core.decide import cost, evaluate, points  # noqa: E402
 from hybrid_raycast.core.decide import (  # noqa: E402
     CALIBRATION_FORMAT, DEFAULT_PATH, QUIET_SHARE, SAMPLE_LADDER, Calibration, CalibrationError, calibrate, load, warm_up,
 )
@@ -458,6 +458,16 @@ def write_markdown(path: Path, R: dict):
                   f"{'/'.join(str(x) for x in v['never'].values())} | {fnum(v['picks']['percent'], 1, None)} | "
                   f"{fnum(v['hybrid_over_oracle'], 3)} | {fnum(v['hybrid_reuse_over_oracle'], 3)} |")
         w("\n**Decision.** " + R["model_decision"] + "\n")
+    if R.get("points"):
+        w("## Point queries: grid or BVH for the closest point (issue 42)\n")
+        w(f"On the {R['points']['scenes']} scenes of up to {fnum(points.CALIBRATION_MAX_TRIANGLES)} triangles, three "
+          f"kinds of points each (`core.decide.points.point_sets`: in the box grown by a fifth, near the surface, on "
+          f"it); both structures built and every point answered on each, medians of 3. The measured break-even is "
+          f"(B_BVH - B_grid) / (t_grid - t_BVH) per point; the estimate is the decision's from the grid's work on the "
+          f"plan's sample and the calibration's point constants. Picks judged at 100 to 1M points.\n")
+        for line in R["points"]["table"]:
+            w(line)
+        w("")
     # -- plots
     w("## Figures\n")
     if R["plots"]:
@@ -662,6 +672,26 @@ def headline(summ: dict, samples: int) -> list[dict]:
 
 # -- the run -----------------------------------------------------------------------------------------
 
+def point_evaluation(cal, scene_list, meshes) -> dict | None:
+    """The decision for point queries on the scenes of up to ``points.CALIBRATION_MAX_TRIANGLES``
+    (``points.measure_points``, ``points.evaluate``) with the calibration's constants, and its
+    markdown table; None when the calibration has none."""
+    model = cal.point_model()
+    if model is None:
+        log("point queries: the calibration holds no constants for them; left out")
+        return None
+    records = []
+    for (name, _, _), mesh in zip(scene_list, meshes):
+        if 0 < mesh.triangle_count <= points.CALIBRATION_MAX_TRIANGLES:
+            log(f"  point queries: {name}")
+            records += points.measure_points(name, mesh)
+    if not records:
+        return None
+    result = points.evaluate(model, records)
+    log(f"point queries: {points.summary_line(result)}")
+    return dict(result, table=points.table(result), scenes=len(records) // 3)
+
+
 def get_calibration(args, beside=None):
     """The calibration the report evaluates, fitted with the package's default model (read
     at run time: the add-on as it stands); a reused file fitted otherwise is refitted.
@@ -773,6 +803,8 @@ def main(argv=None):
                     help=f"take a round of measurements again when other processes took more than this share of the "
                          f"CPU (default {QUIET_SHARE:g}; 0: never; --quick: 0)")
     ap.add_argument("--no-plots", action="store_true")
+    ap.add_argument("--no-points", dest="points", action="store_false",
+                    help="leave out the decision for point queries (closest point: grid or BVH) on the scenes")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     given = {a.split("=")[0] for a in (argv if argv is not None else sys.argv[1:]) if a.startswith("--")}
@@ -838,6 +870,7 @@ def main(argv=None):
                                                             quiet=quiet_share(args), seed=args.seed,
                                                             progress=truth_progress)
     passes = truths[0].repeats if truths else args.repeats
+    point_result = point_evaluation(cal, scene_list, meshes) if args.points else None
     for i, (name, group, _) in enumerate(scene_list):
         mesh, be = meshes[i], truths[i]
         meshes[i] = truths[i] = None  # each scene's structures go once it is done
@@ -900,7 +933,13 @@ def main(argv=None):
                         "counts": {k: dataclasses.asdict(v) for k, v in cal.counts.items()}},
         "kinds": list(kinds), "notes": notes,
     }
+    if point_result is not None:
+        err, share = 100 * point_result["median_error"], 100 * point_result["picks"] / max(point_result["picked"], 1)
+        summary["headline"].append({"measure": "point queries (closest point, grid or BVH): median break-even error; "
+                                               "correct picks", "value": f"{fnum(err, 1)}%; {fnum(share, 1)}%",
+                                    "goal": "≤ 25%; ≥ 95%", "met": "yes" if err <= 25 and share >= 95 else "**no**"})
     R = {"meta": meta, "summary": summary, "models": models, "model_decision": decision, "best_model": best_model,
+         "points": point_result,
          "grid_sample_ratio": ratio_info, "model_docs": {m: evaluate.MODEL_DOCS.get(m, "") for m in models},
          "sweep": sweep, "notes": list(notes), "plots": [],
          "scenes": evaluate.scene_rows(results)}

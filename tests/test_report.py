@@ -391,7 +391,12 @@ def test_report_on_a_reused_calibration_writes_every_part(tmp_path):
     assert "calibrating" not in proc.stdout, "the calibration file was not reused"
     data = json.loads((out / "report.json").read_text())
     assert set(data) == {"meta", "summary", "models", "model_decision", "best_model", "grid_sample_ratio", "model_docs",
-                         "sweep", "notes", "plots", "scenes"}
+                         "sweep", "notes", "plots", "scenes", "points"}
+    # the decision for point queries on the same scene, with the shipped point constants (the hand-made
+    # calibration has none): three kinds of points, each judged
+    pts = data["points"]
+    assert pts["scenes"] == 1 and [c["points_kind"] for c in pts["cases"]] == ["box", "near", "surface"]
+    assert pts["picked"] > 0 and "## Point queries" in (out / "report.md").read_text()
     meta = data["meta"]
     assert meta["calibration"]["how"].startswith("reused from cal.json") and meta["kinds"] == ["bvh"]
     assert meta["calibration"]["ladder"] == [256, 1024] and meta["calibration"]["counts"] == {}

@@ -368,3 +368,30 @@ def closest_planned(points, max_distance, model: PointModel | None, grid, bvh_of
     got = [(r, n) for r, n, _ in parts] + ([(far, tree().closest(points[far], max_distance))] if far.size else [])
     answer = proximity.Nearest.gather(m, got)  # the far points' BVH answers last, over the grid's
     return answer, plan.kind, plan
+
+
+def _count(x) -> str:
+    return "never" if not math.isfinite(x) else f"{x:,.0f}"
+
+
+def table(result: dict) -> list[str]:
+    """Markdown lines of an ``evaluate`` result: per case the measured and estimated
+    break-evens and the picks, then the summary line."""
+    lines = ["| mesh | triangles | points | break-even measured | estimated | error | picks right / judged |",
+             "|---|--:|---|--:|--:|--:|--:|"]
+    for c in result["cases"]:
+        ok = sum(kt == ke for _, kt, ke in c["picks"])
+        err = "-" if c["error"] is None else f"{c['error']:.0%}"
+        lines.append(f"| {c['scene']} | {c['triangles']:,} | {c['points_kind']} | {_count(c['break_even_true'])} | "
+                     f"{_count(c['break_even_est'])} | {err} | {ok} / {len(c['picks'])} |")
+    lines.append("")
+    lines.append(summary_line(result))
+    return lines
+
+
+def summary_line(result: dict) -> str:
+    one = len(result["cases"]) - result["finite"] - result["agree_never"]
+    return (f"median break-even error {result['median_error']:.1%} over {result['finite']} cases with both finite "
+            f"({result['agree_never']} where both say never, {one} where one does); correct picks "
+            f"{result['picks']}/{result['picked']} = {result['picks'] / max(result['picked'], 1):.1%} where the "
+            f"measured totals differ by more than 10%")
