@@ -184,6 +184,13 @@ def sample_size(m: int) -> int:
     return min(int(m), max(SAMPLE_MIN, int(math.ceil(SAMPLE_SHARE * m))))
 
 
+def sample_rows(m: int) -> np.ndarray:
+    """The rows of ``m`` points a plan samples: ``sample_size(m)`` of them, evenly spaced (points
+    often come in order over the surface, a scan's rows or a mesh's vertices)."""
+    k = sample_size(m)
+    return np.arange(k, dtype=np.int64) * m // max(k, 1)
+
+
 def _median_time(fn, repeats: int):
     times, out = [], None
     for _ in range(repeats):
@@ -221,7 +228,7 @@ def measure_points(name: str, mesh: TriangleMesh, *, counts=CALIBRATION_POINTS, 
     for kind, pts in point_sets(mesh, counts, seed):
         work, sample = [0, 0, 0, 0], [0, 0, 0, 0]
         proximity.closest_grid(g.cell_index(), pts, work=work)
-        proximity.closest_grid(g.cell_index(), pts[: sample_size(len(pts))], work=sample)
+        proximity.closest_grid(g.cell_index(), pts[sample_rows(len(pts))], work=sample)
         tg, _ = _median_time(lambda: g.closest(pts), repeats)
         tb, _ = _median_time(lambda: b.closest(pts), repeats)
         out.append(PointRecord(name, kind, mesh.triangle_count, len(pts), grid_build, bvh_build, tg / len(pts),
@@ -341,8 +348,8 @@ def closest_planned(points, max_distance, model: PointModel | None, grid, bvh_of
     the scene, deep in empty space) go to the BVH, so no point costs the grid more than that
     (``PointPlan.handed_over`` counts them)."""
     m = len(points)
-    k = sample_size(m)
-    rows = np.arange(k, dtype=np.int64) * m // max(k, 1)
+    rows = sample_rows(m)
+    k = len(rows)
     work = [0, 0, 0, 0]
     out, left_sample = proximity.closest_grid(grid.cell_index(), points[rows], max_distance, work=work, reach=REACH)
     made = []
