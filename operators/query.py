@@ -593,9 +593,10 @@ def closest_planned(s, p, md, structure: str, grid_config: dict, calibration=Non
     the paper's decision for the rest (``core.decide.points.decide``: the least estimated
     total, the grid's build sunk), and the structure it picks answers them.  The plan is kept
     as ``s.point_plan``."""
+    flat = {key[0]: acc for key, acc in s.structures.items() if key[0] in STRUCTURES}  # not two-level ones
     if structure != "auto":
-        return s.structure(structure).closest(p, md), structure, None
-    flat = {key[0]: acc for key, acc in s.structures.items() if key[0] in ("grid", "bvh")}  # not two-level ones
+        acc = flat.get(structure) or s.structure(structure, **(grid_config if structure == "grid" else {}))
+        return acc.closest(p, md), structure, None
     if "bvh" in flat:
         got, kind = flat["bvh"].closest(p, md), "bvh"
         plan = core.decide.points.PointPlan("bvh", {}, {}, float("nan"), 0, "the session's BVH is built")

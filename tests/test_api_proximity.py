@@ -120,9 +120,16 @@ def test_closest_decides_between_grid_and_bvh_and_every_structure_answers_the_sa
         got = api.closest(pts, structure=kind)
         assert got.structure == kind and math.isnan(got.break_even)
         assert np.array_equal(got.triangle, auto.triangle) and np.array_equal(got.distance, auto.distance)
+    # the sidebar's Closest Points lines: the decision of that first call
+    from hybrid_raycast.ui.panel import point_lines
+
+    lines = [t for t, _ in point_lines(addon.settings.POINTS[bpy.context.scene.name])]
+    assert lines[0].startswith(("Grid for 3,000 points", "BVH for 3,000 points")) and "Grid sample: 256 points" in lines
+    assert any(t.startswith("BVH beats the grid ") for t in lines) and lines[-1].startswith("(least estimated total")
     # the session's BVH is built now: it answers without a sample
     again = api.closest(pts[:10])
     assert again.structure == "bvh"
+    assert point_lines(addon.settings.POINTS[bpy.context.scene.name])[-1][0] == "(the session's BVH is built)"
     with pytest.raises(ValueError, match="structure"):
         api.closest(pts, structure="octree")
 
