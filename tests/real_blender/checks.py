@@ -94,8 +94,11 @@ check("decision follows the break-even", (props.decision == "GRID") == (props.an
 record = json.loads(props.last_analysis_json)
 check("stored JSON matches the properties", record["decision"] == props.decision and record["summary"]["triangles"] == 12)
 plan = record["plan"]
-check("grid estimate is the sample time times this machine's batch ratio (0 < ratio <= 1.5)",
-      0 < props.grid_sample_ratio <= 1.5
+# with the count models the ratio is the grid's estimate over its sample's own time per ray: on a
+# 12-triangle cube right after a tiny calibration it moves with the machine's speed between the
+# two, so the bound is plausibility, not precision
+check("grid estimate is the sample time times this machine's batch ratio (0 < ratio <= 3)",
+      0 < props.grid_sample_ratio <= 3
       and abs(props.grid_sample_ratio - plan["grid_sample_ratio"]) <= 1e-6 * plan["grid_sample_ratio"],
       f"ratio {props.grid_sample_ratio} vs {plan['grid_sample_ratio']}")
 check("grid per ray = sample x ratio",
