@@ -217,20 +217,27 @@ def part_lines(described: dict) -> list[tuple[str, str]]:
     return out
 
 
+def _lines_draw(table: dict, empty: str, lines):
+    """A closed sub-panel's ``draw``: the (text, icon) lines ``lines(entry)`` of the scene's
+    entry in ``table`` (a ``settings`` dict keyed by scene name), or ``empty`` without one."""
+
+    def draw(self, context):
+        entry = table.get(context.scene.name)
+        if not entry:
+            self.layout.label(text=empty, icon="INFO")
+            return
+        col = self.layout.column(align=True)
+        for text, icon in lines(entry):
+            col.label(text=text, icon=icon)
+
+    return draw
+
+
 class VIEW3D_PT_hybrid_raycast_parts(_Base, bpy.types.Panel):
     bl_label = "Structures per Part"
     bl_parent_id = "VIEW3D_PT_hybrid_raycast"
     bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        layout = self.layout
-        described = PARTS.get(context.scene.name)
-        if not described:
-            layout.label(text="One flat structure until the scene changes between calls", icon="INFO")
-            return
-        col = layout.column(align=True)
-        for text, icon in part_lines(described):
-            col.label(text=text, icon=icon)
+    draw = _lines_draw(PARTS, "One flat structure until the scene changes between calls", part_lines)
 
 
 def point_lines(plan: dict) -> list[tuple[str, str]]:
@@ -253,15 +260,7 @@ class VIEW3D_PT_hybrid_raycast_points(_Base, bpy.types.Panel):
     bl_label = "Closest Points"
     bl_parent_id = "VIEW3D_PT_hybrid_raycast"
     bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        plan = POINTS.get(context.scene.name)
-        if not plan:
-            self.layout.label(text="No closest-point query yet (api.closest)", icon="INFO")
-            return
-        col = self.layout.column(align=True)
-        for text, icon in point_lines(plan):
-            col.label(text=text, icon=icon)
+    draw = _lines_draw(POINTS, "No closest-point query yet (api.closest)", point_lines)
 
 
 class VIEW3D_PT_hybrid_raycast_settings(_Base, bpy.types.Panel):
