@@ -130,6 +130,9 @@ class Calibration:
     #: (the scenes list, the spread, (log2 K, [(low, median, high)]) per measured sample size or
     #: None): what ``grid_sample_ratio`` interpolates, made on first use
     _ratio_table: tuple | None = field(default=None, repr=False, compare=False)
+    #: (the points dict, the ``PointModel`` it gives): ``point_model``'s, made on first use (a
+    #: calibration without its own reads the shipped file once, not at every query)
+    _point_model: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -217,8 +220,10 @@ class Calibration:
     def point_model(self) -> PointModel | None:
         """The point queries' decision constants: this calibration's, else the shipped
         defaults' (None when neither has them)."""
-        points = self.points or (None if self.source == "shipped defaults" else load_default().points)
-        return PointModel.from_dict(points) if points else None
+        if self._point_model is None or self._point_model[0] is not self.points:
+            points = self.points or (None if self.source == "shipped defaults" else load_default().points)
+            self._point_model = (self.points, PointModel.from_dict(points) if points else None)
+        return self._point_model[1]
 
     def refitted(self, model: str = DEFAULT_MODEL) -> "Calibration":
         """The same records fitted again with ``model`` and the current count models (no new
@@ -229,9 +234,9 @@ class Calibration:
         return replace(self, fits=fit(self.scenes, kinds, model=model, spread=self.spread), model=model, counts=counts)
 
     def to_dict(self) -> dict:
-        d = asdict(replace(self, _grid_laws=None, _ratio_table=None))  # the caches hold the scenes again
-        d.pop("_grid_laws")
-        d.pop("_ratio_table")
+        d = asdict(replace(self, _grid_laws=None, _ratio_table=None, _point_model=None))  # the caches hold the scenes again
+        for cache in ("_grid_laws", "_ratio_table", "_point_model"):
+            d.pop(cache)
         d["spread"] = list(self.spread)
         return d
 
