@@ -583,7 +583,7 @@ def _check_point_structure(structure):
         raise ValueError("structure='embree' needs embreex, which cannot be imported here")
 
 
-def closest_planned(s, p, md, structure: str, grid_config: dict, calibration=None):
+def _session_closest(s, p, md, structure: str, grid_config: dict, calibration=None):
     """(``core.proximity.Nearest``, the kind that answered, ``core.decide.points.PointPlan`` or
     None) for checked points ``p`` on session ``s``.
 
@@ -621,7 +621,7 @@ def closest(points, *, max_distance=np.inf, depsgraph=None, selected_only: bool 
     max_distance: inclusive; a point with nothing that near gets distance inf (found False).
     The search is exact in float64 (an exact tie to the lowest triangle index) over the same
     session (extracted triangles, instances) as ``cast``, whichever structure answers.
-    structure: 'auto' (the paper's decision for point queries, ``closest_planned``), or
+    structure: 'auto' (the paper's decision for point queries, ``_session_closest``), or
     'grid', 'bvh', 'embree' (its point queries search a BVH built beside it on first use).
     Raises TypeError/ValueError naming the argument, NoGeometry / InvalidGeometry for a scene
     without usable triangles."""
@@ -630,7 +630,7 @@ def closest(points, *, max_distance=np.inf, depsgraph=None, selected_only: bool 
     _check_point_structure(structure)
     attributes = (("normal",) if smooth else ()) + (("uv",) if uv else ())
     s, props = _point_session(depsgraph, selected_only, attributes, tree=False)
-    n, kind, plan = closest_planned(s, p, md, structure, {"density": float(props.grid_density)}, s.calibration)
+    n, kind, plan = _session_closest(s, p, md, structure, {"density": float(props.grid_density)}, s.calibration)
     objects, names = s.tables()
     inst = s.mesh.instances
     tri_obj, tri_ins, tri_poly, tri_normals = s.per_triangle()
