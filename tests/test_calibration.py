@@ -487,20 +487,22 @@ def test_constants_apart_states_terms_builds_and_count_models_at_their_anchors()
                             {"grid": Measurement(0.01, 1000 * (2e-6 + 5e-8 * c), 1000),
                              "bvh": Measurement(f * (0.015 + 0.004 * (math.log2(n) - 10) + 0.12 * n / 65536),
                                                 1000 * (1e-6 + 1e-7 * math.log2(n)), 1000)},
-                            work={"cells": c, "refs": None, "hit": h, "length": 0.3, "candidates": 2 * c})
+                            work={"cells": c, "refs": None, "hit": h, "length": 0.3, "steps": c / 3 + 2,
+                                  "candidates": 2 * c})
                 for n, c, h in ((500, 4, 0.6), (2000, 8, 0.1), (8000, 12, 0.5), (30000, 20, 0.3), (120000, 30, 0.8),
                                 (500000, 45, 0.4), (1000000, 55, 0.2))]
 
     a, b = (Calibration(fit(r, ("bvh",)), scenes=r, counts=cost.fit_counts(r, ("grid", "bvh"))) for r in (recs(1), recs(1.5)))
     apart = constants_apart(a, b)
     builds = {f"bvh build at {n:,}" for n in cost.BUILD_ANCHORS}
-    rays = {"grid per ray at cells = 5", "grid per ray at cells = 40", "bvh per ray at hit = 0.1, candidates = 10",
-            "bvh per ray at hit = 0.6, candidates = 10", "bvh per ray at hit = 0.5, candidates = 35"}
+    rays = {"grid per ray at steps = 5, candidates = 10", "grid per ray at steps = 10, candidates = 13",
+            "grid per ray at steps = 10, candidates = 35", "bvh per ray at hit = 0.1, steps = 10",
+            "bvh per ray at hit = 0.6, steps = 5", "bvh per ray at hit = 0.6, steps = 10"}
     assert set(apart) == builds | rays
     assert all(apart[k] == pytest.approx(40.0) for k in builds)
     assert all(apart[k] == pytest.approx(0.0, abs=1e-9) for k in rays)
     raw = constants_apart(a, b, stated=False)
-    assert {"bvh build 1", "bvh build n", "grid per ray at ref", "grid per ray x cells"} <= set(raw)
+    assert {"bvh build 1", "bvh build n", "grid per ray at ref", "grid per ray x steps", "bvh per ray x hit"} <= set(raw)
 
 
 def test_calibration_repeats_are_passes_over_all_scenes_and_records_keep_each_scenes_medians(monkeypatch):

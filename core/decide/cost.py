@@ -595,11 +595,12 @@ COUNT_REFERENCE = {"log2n": L_REF, "cells": 15.0, "steps": 8.0, "candidates": 20
 #: candidates at three corners of what the calibration scenes span (4-22 steps, 8-38
 #: candidates a ray): few of both (small scenes), many steps and few candidates (cities,
 #: scatter), many of both (large closed meshes, terrain).  The numpy BVH's hit fraction and
-#: candidates likewise (hits 0.01-0.84 a ray): few hits (slivers, scatter), many hits among
-#: few candidates (spheres, cities), many hits among many (large soups)
+#: steps likewise (hits 0.01-0.84 a ray, 4-11 steps where half of them hit): few hits
+#: (slivers, scatter), many hits in few steps (small spheres, cities), many hits in many
+#: (large closed meshes and soups)
 COUNT_ANCHORS = {"cells": (5.0, 40.0), "log2n": (10.0, 20.0), "hit_above_16k": (0.0, 2.5),
                  ("steps", "candidates"): ((5.0, 10.0), (10.0, 13.0), (10.0, 35.0)),
-                 ("hit", "candidates"): ((0.1, 10.0), (0.6, 10.0), (0.5, 35.0))}
+                 ("hit", "steps"): ((0.1, 10.0), (0.6, 5.0), (0.6, 10.0))}
 
 
 def _anchor_points(slopes: tuple) -> list[dict] | None:
@@ -761,13 +762,17 @@ class CountFit:
 #: has left the cache, where the calibration's low stadium-500k and scatter scenes and high
 #: soups pull the slope flat); exp(a + b hit_above_16k) follows the held-out meshes closely
 #: and has the lower leave-one-out error, over calibrations and reports' truths alike.
-#: The numpy BVH's is a + b hit + c candidates: a ray that hits descends to the leaves and a
+#: The numpy BVH's is a + b hit + c steps: a ray that hits descends to the leaves and a
 #: ray that misses leaves the tree near its root, so its time follows the sample's hit
-#: fraction, and the grid's candidates say how densely the leaves it reaches are filled;
-#: a + b log2 N sees neither (BENCHMARKS.md, "The new evaluation set: tuning and final halves").
+#: fraction; the grid's lockstep steps (an empty stretch jumped over is one) count the
+#: stretches of occupied space the ray passes, whose boxes the tree opens too.  a + b log2 N
+#: sees neither.  The grid's candidates in place of its steps say how full its cells are,
+#: which a tree's leaves bound whatever the mesh: on flat and thin meshes, whose rays pass
+#: few stretches, that model put the tree's time per ray far high (BENCHMARKS.md, "The new
+#: evaluation set: tuning and final halves").
 COUNT_TERMS = {
     "grid": ("1", "steps", "candidates"),
-    "bvh": ("1", "hit", "candidates"),
+    "bvh": ("1", "hit", "steps"),
     "embree": ("1", "hit_above_16k"),
 }
 
