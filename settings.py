@@ -279,8 +279,15 @@ class HybridRaycastSettings(bpy.types.PropertyGroup):
         description="Whether the analysis built the grid: not when the calibration alone settled the decision "
         "(the expected rays above its ceiling on the break-even against a structure much faster per ray)")
     break_even_ceiling: FloatProperty(
-        name="Break-even Ceiling", description="The calibration's upper bound on the break-even against the "
-        "structure it settled for (0 when the analysis measured the grid)", min=0.0, max=BREAK_EVEN_NEVER, precision=0)
+        name="Break-even Ceiling", description="The rays from which the calibration alone settled the decision: "
+        "its upper bound on the break-even against the structure it settled for, or where Settled Slack is above 0 "
+        "the rays from which building that structure costs at most that much more than the grid (0 when the "
+        "analysis measured the grid)", min=0.0, max=BREAK_EVEN_NEVER, precision=0)
+    settled_slack: FloatProperty(
+        name="Settled Slack", description="How much more than the grid, at most, building the settled structure may "
+        "cost on the calibration's estimates (a surface mesh, decided without a sample); 0 when the structure "
+        "beats the grid on the calibration's bounds or the analysis measured the grid", min=0.0, max=1.0,
+        subtype="FACTOR", precision=2)
     grid_per_ray: _time("Grid per Ray", "Grid time per ray on a large workload: from the sample rays' work counts "
                         "(traversal steps and candidate triangles, or cells with an older calibration) with the "
                         "calibrated count model, or else their measured time times the calibrated batch ratio")

@@ -137,6 +137,13 @@ class TriangleMesh:
     def surface_area(self) -> float:
         return float(self.areas().sum())
 
+    def is_surface(self) -> bool:
+        """Whether the triangles share their vertices as a surface's do (no more vertices
+        than triangles; a closed mesh has about half as many), not a soup of separate
+        triangles with three each.  A plan may build a hierarchy at once, without a sample,
+        only for a surface (``decide.rule.regret_bound``)."""
+        return 0 < len(self.vertices) <= self.triangle_count
+
     def nbytes(self) -> int:
         return int(self.vertices.nbytes + self.triangles.nbytes)
 

@@ -58,7 +58,7 @@ from .factory import available_kinds, build, unavailable_reason
 from .decide.calfile import Calibration, load_default
 from .decide.cost import Cost, break_even
 from .decide.measurements import time_trace
-from .decide.rule import REUSES_SAMPLES, choose, settle_bound, unsampled
+from .decide.rule import REUSES_SAMPLES, SETTLE_SLACK, choose, settle_bound, unsampled
 from .decide.work import SAMPLE_COST_SHARE, DEFAULT_SAMPLES, grid_work, sample_count, traversal_counts
 from .hits import Hits
 from .mesh import TriangleMesh
@@ -132,9 +132,15 @@ class Plan:
     #: (the expected rays above ``break_even_ceiling``): no grid built, no sample traced,
     #: and the grid's figures are the calibration's bound, not a measurement
     grid_built: bool = True
-    #: the calibration's upper bound on the break-even against the structure it settled
-    #: for (inf: the plan measured the grid)
+    #: the rays from which the calibration alone settled the plan (inf: the plan measured the
+    #: grid): its upper bound on the break-even against the structure it settled for, or,
+    #: where ``settled_slack`` > 0, the rays from which building that structure at once costs
+    #: at most that share more than building the grid (``rule.regret_bound``)
     break_even_ceiling: float = math.inf
+    #: 0, or ``rule.SETTLE_SLACK`` when the plan settled for a structure that may lose to the
+    #: grid by at most that share of the grid's total (a surface mesh; no bound on the
+    #: break-even above the floor)
+    settled_slack: float = 0.0
     #: words when the break-even is ill-conditioned (``conditioning``), else ''
     ill_conditioned: str = ""
     #: why a plan that built the grid traced no sample ('' when it did): NO_SAMPLE_FLOOR or NO_SAMPLE_DEAR
@@ -181,6 +187,7 @@ class Plan:
             "grid_sample_ratio": self.grid_sample_ratio, "workload_samples": self.workload_samples, "work": self.work,
             "grid_terms": list(self.grid_terms), "break_even_floor": self.break_even_floor,
             "grid_built": self.grid_built, "break_even_ceiling": _json_float(self.break_even_ceiling),
+            "settled_slack": self.settled_slack,
             "ill_conditioned": self.ill_conditioned, "no_sample": self.no_sample,
             "estimate_time": self.estimate_time,
             "plan_time": self.plan_time, "grid_reused": self.grid_reused,
@@ -195,6 +202,9 @@ class Plan:
             return "inf" if not math.isfinite(x) else f"{x:,.0f}"
 
         head = f"{self.decision} for {self.expected_rays:,.0f} rays on {self.triangles:,} triangles; "
+        if not self.grid_built and self.settled_slack > 0:
+            return head + (f"no grid built: on the calibration alone building {self.chosen} costs at most "
+                           f"{self.settled_slack:.0%} more than building the grid from {num(self.break_even_ceiling)} rays")
         if not self.grid_built:
             return head + (f"no grid built: on the calibration alone {self.chosen} beats building the grid "
                            + (f"from at most {num(self.break_even_ceiling)} rays" if self.break_even_ceiling > 0
@@ -568,38 +578,53 @@ def sample_pays(calibration: Calibration, samples: int, expected_rays) -> bool:
 
 
 def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, unavailable, notes) -> Plan | None:
-    """The plan when the calibration alone settles it for a hierarchical structure H: the
-    expected rays pass the calibration's ceiling on the break-even against the H with the
-    least estimated total (``Calibration.prior``), so H wins whatever a sample would say and
-    neither the grid nor a sample is paid for.  None otherwise.  The grid's figures are then
-    the calibration's: its time per ray the least it allows (t_H + the least gain)."""
+    """The plan when the calibration alone settles it for a hierarchical structure H, the one
+    with the least estimated total (``rule.settle_bound``): the expected rays pass the
+    calibration's ceiling on the break-even against H (``Calibration.prior``), so H wins
+    whatever a sample would say; or, for a surface mesh, the rays from which building H costs
+    at most ``rule.SETTLE_SLACK`` more than building the grid (``rule.regret_bound``).  Neither
+    the grid nor a sample is paid for.  None otherwise.  The grid's figures are then the
+    calibration's: its time per ray the least it allows (t_H + the least gain) under a
+    ceiling, its estimate for N within the slack."""
     r = float(expected_rays)
     n = mesh.triangle_count
     est = {kk: calibration.estimate(kk, n) for kk in cands}
     best = min(est, key=lambda kk: (est[kk].build_time + r * est[kk].per_ray, kk))
+    grid = calibration.grid_estimate(n)
+    surface = mesh.is_surface() and grid is not None
     ceiling = pri.ceiling.get(best)
-    if ceiling is None:
+    if ceiling is None and not surface:
         return None
-    bound = settle_bound(calibration.grid_estimate(n), est[best], ceiling)
+    sure = settle_bound(grid, est[best], math.inf if ceiling is None else ceiling)
+    bound = settle_bound(grid, est[best], math.inf if ceiling is None else ceiling, surface=surface)
     if r < bound:
         return None
-    g = est[best].per_ray + pri.gain_low[best]
+    near = bound < sure  # settled within the slack, not because H surely wins
+    if near:
+        g, why = grid.per_ray, (f"{r:,.0f} expected rays are above the rays from which building {best} costs at most "
+                                f"{SETTLE_SLACK:.0%} more than building the grid on the calibration's estimates for "
+                                f"{n:,} triangles ({bound:,.0f}; a surface mesh, on which those estimates lean to the "
+                                f"grid)")
+    else:
+        g = est[best].per_ray + pri.gain_low[best]
+        why = (f"{r:,.0f} expected rays are above the rays from which building {best} beats building the grid on the "
+               f"calibration's estimates for {n:,} triangles ({bound:,.0f})" if bound > 0
+               else f"{best} builds faster than the grid and traces faster on the calibration's estimates for "
+                    f"{n:,} triangles")
     p = plan_from_timings(n, r, calibration, 0.0, g, kinds=kinds, samples=0, unavailable=unavailable,
-                          notes=list(notes) + [
-                              (f"{r:,.0f} expected rays are above the rays from which building {best} beats building "
-                               f"the grid on the calibration's estimates for {n:,} triangles ({bound:,.0f})" if bound > 0
-                               else f"{best} builds faster than the grid and traces faster on the calibration's "
-                                    f"estimates for {n:,} triangles")
-                              + f": {best} without a grid or a sample; the grid's figures are the calibration's"],
+                          notes=list(notes) + [why + f": {best} without a grid or a sample; the grid's figures are "
+                                                     f"the calibration's"],
                           floor=pri.floor)
-    # the rule weighs the grid's build as sunk; here nothing is built yet, and the ceiling
-    # bounds the rays from which building ``best`` beats building the grid
+    # the rule weighs the grid's build as sunk; here nothing is built yet, and the bound is
+    # on the rays from which building ``best`` beats building the grid (or comes within the slack)
     p.decision, p.certain = best.upper(), True
     p.grid_built = False
     p.break_even_ceiling = float(bound)
-    # what the calibration alone says of the break-even: between its floor and its ceiling
-    # (its estimate for N, extrapolated far from the calibration's sizes, may fall outside)
-    p.break_even_low, p.break_even_high = min(pri.floor, float(bound)), float(bound)
+    p.settled_slack = SETTLE_SLACK if near else 0.0
+    # what the calibration alone says of the break-even: above its floor, and under a
+    # ceiling at most that (its estimate for N, extrapolated far from the calibration's
+    # sizes, may fall outside); within the slack it bounds it no further
+    p.break_even_low, p.break_even_high = min(pri.floor, float(bound)), (math.inf if near else float(bound))
     p.break_even = min(max(p.break_even, p.break_even_low), p.break_even_high)
     p.grid_sample_per_ray = 0.0
     return p

@@ -107,6 +107,7 @@ def store_results(props, record):
     props.grid_built = record["plan"].get("grid_built", True)
     props.break_even_warning = record["plan"].get("ill_conditioned", "")
     props.break_even_ceiling = min(record["plan"].get("break_even_ceiling") or 0.0, NEVER)
+    props.settled_slack = record["plan"].get("settled_slack", 0.0)
     props.grid_sample_ratio = record["plan"].get("grid_sample_ratio", 1.0)
     work = record["plan"].get("work") or {}
     # the counts the grid's model weighed (an older calibration weighs cells, not steps):

@@ -556,7 +556,7 @@ def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():
 
     recs = _lawful_records()
     cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
-    mesh = S.torus(3000)
+    mesh = _soup_of(S.torus(3000))  # not a surface: only the ceiling settles (see the next test)
     n = mesh.triangle_count
     # the bound: the rays from which building the BVH beats building the grid on the
     # calibration's estimates for N (the grid's at their low end), under the ceiling over its scenes
@@ -579,6 +579,46 @@ def test_a_plan_above_the_ceiling_builds_no_grid_and_takes_the_candidate():
     below = plan(mesh, ceiling * 0.9, cal, kinds=("grid", "bvh"), samples=2000)
     assert below.grid_built and below.grid is not None and below.samples == 0  # too few rays for a sample: the estimates for N decide
     assert plan(mesh, ceiling * 1.1, cal, kinds=("grid", "bvh"), samples=2000, prior=False).grid_built
+
+
+def _soup_of(mesh):
+    """The same triangles with three vertices of their own each: not a surface."""
+    from hybrid_raycast.core import TriangleMesh
+
+    return TriangleMesh(mesh.tri_vertices.reshape(-1, 3), np.arange(3 * mesh.triangle_count).reshape(-1, 3))
+
+
+def test_a_plan_for_a_surface_builds_the_structure_within_the_slack_of_the_grid_without_a_sample():
+    """On a surface mesh a plan builds H at once from the rays where, on the calibration's
+    estimates for N, building H costs at most SETTLE_SLACK more than building the grid
+    (``rule.regret_bound``), below any ceiling; the same triangles as a soup are sampled."""
+    from hybrid_raycast.core import plan, scenes as S
+
+    recs = _lawful_records()
+    cal = Calibration(cost.fit(recs, ("bvh",), model="power"), scenes=recs, model="power", source="hand")
+    mesh = S.torus(3000)
+    n = mesh.triangle_count
+    grid, bvh = cal.grid_estimate(n), cal.estimate("bvh", n)
+    s = 1 + rule.SETTLE_SLACK
+    bound = rule.regret_bound(grid, bvh)
+    assert bound == pytest.approx((bvh.build_time - s * grid.build_time) / (s * grid.per_ray - bvh.per_ray))
+    assert 0 < bound < rule.settle_bound(grid, bvh, cal.prior(n, ("bvh",)).ceiling["bvh"])
+    assert rule.settle_bound(grid, bvh, surface=True) == pytest.approx(bound)
+    # above the bound building the BVH costs at most the slack more than building the grid
+    for r in (bound, 10 * bound, 1e9):
+        assert bvh.build_time + r * bvh.per_ray <= s * (grid.build_time + r * grid.per_ray) * (1 + 1e-12)
+    above = plan(mesh, bound * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
+    assert (above.grid_built, above.grid, above.samples, above.decision) == (False, None, 0, "BVH")
+    assert above.settled_slack == rule.SETTLE_SLACK and above.break_even_ceiling == pytest.approx(bound)
+    assert above.break_even_high == math.inf and above.break_even_low <= above.break_even
+    assert above.to_dict()["settled_slack"] == rule.SETTLE_SLACK
+    assert "at most 5% more than building the grid" in above.summary()
+    assert any("a surface mesh" in note for note in above.notes)
+    assert plan(mesh, bound * 0.9, cal, kinds=("grid", "bvh"), samples=2000).grid_built
+    soup = plan(_soup_of(mesh), bound * 1.1, cal, kinds=("grid", "bvh"), samples=2000)
+    assert soup.grid_built and soup.settled_slack == 0.0
+    # no faster per ray than (1 + slack) t_G: never within the slack
+    assert rule.regret_bound(grid, cost.Cost.point("bvh", bvh.build_time, s * grid.per_ray)) == math.inf
 
 
 def test_the_evaluated_hybrid_builds_no_grid_above_the_ceiling():
@@ -630,7 +670,7 @@ def test_five_plans_with_fresh_seeds_agree_within_the_goal_on_quasi_random_sampl
     from hybrid_raycast.core.decide.work import DEFAULT_SAMPLES
 
     cal, mesh = load_default(), S.make_scene("terrain", 5000, seed=1)
-    first = plan(mesh, 1e6, cal, kinds=("grid", "bvh"), seed=0)
+    first = plan(mesh, 1e6, cal, kinds=("grid", "bvh"), seed=0, prior=False)
     assert first.samples == DEFAULT_SAMPLES and any("quasi-random" in n for n in first.notes)
     be = [first.break_even] + [plan(mesh, 1e6, cal, kinds=("grid", "bvh"), grid=first.grid, seed=s).break_even
                                for s in range(1, 5)]
@@ -998,3 +1038,10 @@ def test_the_evaluated_hybrid_settles_where_the_plan_does_on_the_estimates_for_n
     settled, pick = ev.settled_without_grid(s, [24_000, 26_000, 2e5])
     assert settled.tolist() == [False, True, True] and set(pick) == {"bvh"}
     assert rule.settle_bound(None, s.prior_estimated["bvh"], 1e5) == 1e5  # no grid estimate: the ceiling
+    # a surface settles from the rays where the BVH comes within the slack of the grid, ceiling or not
+    near = rule.regret_bound(grid_est, s.prior_estimated["bvh"])
+    assert near == pytest.approx((0.03 - 1.05 * 0.012) / (1.05 * 1.2e-6 - 2e-7)) and near < bound
+    flat = ev.SceneResult(**{**s.__dict__, "ceiling": {}, "surface": True})
+    settled, _ = ev.settled_without_grid(flat, [near * 0.99, near * 1.01])
+    assert settled.tolist() == [False, True]
+    assert not ev.settled_without_grid(ev.SceneResult(**{**flat.__dict__, "surface": False}), [1e9])[0].any()

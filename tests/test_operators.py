@@ -7,7 +7,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
 
-from blender_scenes import add_cube, add_plane, addon, fresh, make_nan, props, simple_scene  # noqa: E402,F401
+from blender_scenes import add_cube, add_plane, addon, fresh, make_nan, props, simple_scene, unweld  # noqa: E402,F401
 
 pytestmark = pytest.mark.blender
 
@@ -20,7 +20,9 @@ def analyze():
 
 def test_analyze_fills_every_result_and_agrees_with_its_own_json(fresh, addon):
     simple_scene()
-    props().candidates = {"BVH"}  # a candidate the calibration cannot settle alone: the grid is measured
+    # a soup and a candidate the calibration cannot settle alone: the grid is measured
+    unweld(bpy.data.objects["Cube"])
+    props().candidates = {"BVH"}
     assert analyze() == {"FINISHED"}
     p = props()
     assert p.has_results and p.decision in {"GRID", "BVH", "EMBREE"}
@@ -67,6 +69,7 @@ def test_sidebar_quotes_only_the_counts_the_grid_model_weighed(fresh, addon):
     still counts steps and candidates, but the sidebar must not quote counts the estimate
     did not use (it falls back to the cells line)."""
     simple_scene()
+    unweld(bpy.data.objects["Cube"])  # a soup: the grid is measured
     props().candidates = {"BVH"}
     assert analyze() == {"FINISHED"}
     p = props()
@@ -387,6 +390,12 @@ def test_the_panel_draw_code_runs(fresh, addon):
     if not p.grid_built:  # Embree settled by the calibration alone: said so, no grid figures
         assert "Grid: not built" in texts and any("no grid built" in t for t in texts), texts
     p.candidates = {"BVH"}
+    analyze()  # a surface at a million rays: the BVH within the slack of the grid, no grid built
+    near, _ = draw()
+    assert not p.grid_built and p.settled_slack > 0 and p.decision == "BVH", (p.grid_built, p.settled_slack)
+    assert "Grid: not built" in near and any("costs at most 5% more than the grid" in t for t in near), near
+    assert any(t.startswith("Interval: [") and "inf]" in t for t in near), near
+    unweld(bpy.data.objects["Cube"])  # the same triangles as a soup: measured
     analyze()
     measured, _ = draw()
     assert any(t.startswith("Grid: build") for t in measured), measured

@@ -303,7 +303,7 @@ def _with_ratio(cal: Calibration, ratio: float, spread=(0.5, 2.0)) -> Calibratio
 
 def test_plan_scales_the_sample_time_by_the_calibrated_ratio():
     cal = _with_ratio(cal_of(bvh=(1e-9, 1e-9)), 0.5)
-    p = plan(scenes.torus(1500), 1e6, cal, samples=256, kinds=("grid", "bvh"))
+    p = plan(scenes.torus(1500), 1e6, cal, samples=256, kinds=("grid", "bvh"), prior=False)
     assert p.grid_sample_ratio == pytest.approx(0.5)
     assert p.grid_per_ray == pytest.approx(0.5 * p.grid_sample_per_ray, rel=1e-12)
     g = p.candidates["grid"]

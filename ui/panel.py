@@ -42,6 +42,10 @@ def break_even_text(props) -> tuple[str, str]:
     """(point, interval) as the panel shows them."""
     if not props.grid_built:  # settled by the calibration alone: no grid to keep
         kind = _kind_name(props.break_even_kind)
+        if props.settled_slack > 0:
+            hi = "inf" if props.break_even_high_infinite else _rays(props.break_even_high)
+            return (f"{_rays(props.break_even_rays)} rays on the calibration alone (no grid built)",
+                    f"[{_rays(props.break_even_low)} - {hi}], the calibration's")
         if props.break_even_ceiling <= 0:
             return f"none: {kind} from the first ray (no grid built)", "the calibration's"
         return (f"at most {_rays(props.break_even_ceiling)} rays (no grid built)",
@@ -161,7 +165,10 @@ class VIEW3D_PT_hybrid_raycast_figures(_Base, bpy.types.Panel):
         if not props.grid_built:
             kind = ("the " if props.break_even_kind == "BVH" else "") + _kind_name(props.break_even_kind)
             col.label(text="Grid: not built")
-            if props.break_even_ceiling > 0:
+            if props.settled_slack > 0:
+                col.label(text=f"  (above {props.break_even_ceiling:,.0f} rays {kind} costs at most "
+                               f"{props.settled_slack:.0%} more than the grid on the calibration alone)")
+            elif props.break_even_ceiling > 0:
                 col.label(text=f"  (above {props.break_even_ceiling:,.0f} rays {kind} wins on the calibration alone)")
             else:
                 col.label(text=f"  ({kind} built faster and traced faster on every calibration scene)")

@@ -112,6 +112,9 @@ class SceneResult:
     #: more than SAMPLE_COST_SHARE of the rays' trace: ``plan.sample_pays``) and decides on the
     #: calibration's estimates for N (``prior_estimated``, ``rule.unsampled``); 0: never
     unsampled_below: float = 0.0
+    #: whether the mesh is a surface (``TriangleMesh.is_surface``): the plan may then settle
+    #: for a structure within ``rule.SETTLE_SLACK`` of the grid without a sample
+    surface: bool = False
 
     @property
     def grid_sample_ratio(self) -> float | None:
@@ -306,8 +309,9 @@ def chosen_cost(s: SceneResult, choice, rays) -> np.ndarray:
 
 def settled_without_grid(s: SceneResult, rays, kinds=("bvh",)) -> tuple[np.ndarray, np.ndarray]:
     """(settled (R,) bool, pick (R,) names): where the plan builds no grid (the rays above
-    the calibration's ceiling against the kind its estimate for N alone makes cheapest;
-    ``plan._settled_without_grid``) and the kind it takes there."""
+    the calibration's ceiling against the kind its estimate for N alone makes cheapest or,
+    on a surface, above the rays from which that kind comes within ``rule.SETTLE_SLACK`` of
+    the grid: ``rule.settle_bound``, ``plan._settled_without_grid``) and the kind it takes there."""
     r = np.atleast_1d(np.asarray(rays, np.float64))
     est = {k: s.prior_estimated[k] for k in kinds if k in s.prior_estimated and k in s.measured}
     if not est:
@@ -316,7 +320,9 @@ def settled_without_grid(s: SceneResult, rays, kinds=("bvh",)) -> tuple[np.ndarr
     totals = np.stack([est[k].build_time + r * est[k].per_ray for k in names])
     pick = np.asarray(names, dtype=object)[np.argmin(totals, axis=0)]
     grid = s.prior_estimated.get("grid")
-    bounds = {k: settle_bound(grid, est[k], s.ceiling[k]) if k in s.ceiling else math.inf for k in names}
+    surface = s.surface and grid is not None
+    bounds = {k: settle_bound(grid, est[k], s.ceiling.get(k, math.inf), surface=surface)
+              if k in s.ceiling or surface else math.inf for k in names}
     return r >= np.array([bounds[k] for k in pick], np.float64), pick
 
 
@@ -795,6 +801,7 @@ def measure_scene(name, group, mesh, cal: Calibration, kinds, be=None, *, rays: 
         prior_estimated={**{k: cal.estimate(k, n) for k in kinds if k in cal.fits},
                          **({"grid": g} if (g := cal.grid_estimate(n)) is not None else {})},
         unsampled_below=max([float(x) for x in RAY_COUNTS if not sample_pays(cal, samples, x)], default=0.0),
+        surface=mesh.is_surface(),
         extra={"plan_grid_build": p.grid_build_time, "grid_resolution": [int(x) for x in getattr(grid, "res", [])],
                "plan_break_even": {k: c.break_even for k, c in p.candidates.items() if k != "grid"},
                "break_even_low": p.candidates["bvh"].break_even_low, "break_even_high": p.candidates["bvh"].break_even_high,

@@ -81,18 +81,47 @@ def over_life(estimates: dict, rays: float, built=()) -> tuple[str, dict, float,
     return kind, totals, best, be_kind
 
 
-def settle_bound(grid, estimate, ceiling: float) -> float:
-    """The rays from which building ``estimate``'s structure (a ``cost.Cost`` for N) beats
-    building the grid, nothing being built yet: R_0 = (T_B^H - T_B^G) / (t_G - t_H) with the
-    grid's build and time per ray at the low end of the calibration's estimate for N (``grid``,
+#: a plan for a surface mesh (``TriangleMesh.is_surface``) builds a structure H at once, with
+#: neither the grid nor a sample, from the rays where building H costs at most this share more
+#: than building the grid, on the calibration's estimates for N (``regret_bound``)
+SETTLE_SLACK = 0.05
+
+
+def regret_bound(grid, estimate, slack: float = SETTLE_SLACK) -> float:
+    """The rays from which building ``estimate``'s structure H (a ``cost.Cost`` for N) costs,
+    builds included, at most ``slack`` more than building the grid, on the point figures of
+    the calibration's estimates for N (``grid``: ``Calibration.grid_estimate``):
+    R = (T_B^H - (1 + s) T_B^G) / ((1 + s) t_G - t_H), 0 where H's build is within the slack
+    of the grid's, inf where H is not faster per ray than (1 + s) t_G.  For every R above it
+    H's total is within the slack of the grid's, so a plan that builds H at once there loses
+    little where the grid would have won, and saves the grid's build and the sample, which
+    near the break-even cost more than a wrong pick does.
+
+    Only for a surface: the calibration's scenes include soups, whose trees' boxes overlap, so
+    its estimate of the numpy BVH's time per ray runs high on a surface mesh and the figures
+    lean to the grid; on a soup the tree may trace slower than the grid, which only a sample
+    sees (BENCHMARKS.md, "The new evaluation set")."""
+    s = 1.0 + float(slack)
+    gain = s * float(grid.per_ray) - float(estimate.per_ray)
+    if not gain > 0:
+        return math.inf
+    return max(float(estimate.build_time) - s * float(grid.build_time), 0.0) / gain
+
+
+def settle_bound(grid, estimate, ceiling: float = math.inf, surface: bool = False) -> float:
+    """The rays from which a plan builds ``estimate``'s structure (a ``cost.Cost`` for N) at
+    once, nothing being built yet, and neither the grid nor a sample: from where building it
+    beats building the grid, R_0 = (T_B^H - T_B^G) / (t_G - t_H) with the grid's build and time
+    per ray at the low end of the calibration's estimate for N (``grid``,
     ``Calibration.grid_estimate``; 0 where H builds faster, inf where the grid is faster per
-    ray), and never above the calibration's ``ceiling``, its bound over all its scenes.  A
-    plan for more rays builds neither the grid nor a sample."""
+    ray), never above the calibration's ``ceiling``, its bound over all its scenes; for a
+    ``surface`` mesh, from ``regret_bound`` if that comes first."""
     if grid is None:
         return float(ceiling)
     r0 = break_even(max(float(estimate.build_time) - float(grid.build_low), 0.0), float(grid.per_ray_low),
                     float(estimate.per_ray))
-    return min(float(ceiling), r0)
+    bound = min(float(ceiling), r0)
+    return min(bound, regret_bound(grid, estimate)) if surface else bound
 
 
 def unsampled(grid, estimates: dict) -> tuple[float, dict]:

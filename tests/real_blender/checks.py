@@ -83,7 +83,18 @@ res = bpy.ops.hybrid_raycast.scene_summary()
 check("summary operator finishes on the default cube", res == {"FINISHED"}, str(res))
 check("default cube has 12 triangles", props.triangle_count == 12, str(props.triangle_count))
 props.expected_rays = 1e6
-props.candidates = {"BVH"}  # the measured path (with Embree the calibration may settle it alone: below)
+props.candidates = {"BVH"}
+res = bpy.ops.hybrid_raycast.analyze()
+check("analyze on the cube, a surface, at 1M rays: the BVH within the slack of the grid, no grid built",
+      res == {"FINISHED"} and not props.grid_built and props.decision == "BVH" and props.settled_slack > 0
+      and props.samples_traced == 0, f"{res}, grid built {props.grid_built}, {props.decision}, {props.settled_slack}")
+# the cube's faces with vertices of their own: a soup, which only a sample judges (the measured
+# path; with Embree the calibration may still settle it alone: below)
+cube = bpy.data.objects["Cube"]
+soup = bpy.data.meshes.new("Cube soup")
+soup.from_pydata([tuple(cube.data.vertices[i].co) for p in cube.data.polygons for i in p.vertices], [],
+                 [list(range(4 * j, 4 * j + 4)) for j in range(len(cube.data.polygons))])
+cube.data = soup
 res = bpy.ops.hybrid_raycast.analyze()
 check("analyze finishes", res == {"FINISHED"}, str(res))
 check("analyze decides", props.decision in {"GRID", "BVH", "EMBREE"}, props.decision)
