@@ -18,7 +18,7 @@ ZIPS   := $(foreach p,$(PLATFORMS),dist/hybrid_raycast-$(VERSION)-$(p).zip)
 # This machine's package (the real-Blender suite installs it).
 ZIP    := dist/hybrid_raycast-$(VERSION)-linux_x64.zip
 
-.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-frames bench-proximity bench-point-decision report docs clean
+.PHONY: demo test test-slow test-matrix matrix-venv real-blender venv open3d-venv wheels validate extension bench-extract bench-trace bench-threads bench-distributed bench-scan bench-frames bench-proximity bench-point-decision report report-halves docs clean
 
 ## The main job: analyze and trace the built-in demo scene headless; prints the decision, writes out/demo/ (JSON, passes, plot).
 demo: $(VENV)/.stamp
@@ -144,6 +144,12 @@ bench-proximity: $(VENV)/.stamp
 ## evaluation set's halves, with the shipped constants (timing lock held; about a minute a half).
 bench-point-decision: $(VENV)/.stamp
 	flock /tmp/hrc-bench.lock $(PY) scripts/point_decision.py --model-from-calibration --scenes ../shared/eval/tuning --scenes ../shared/eval/final $(BENCH_ARGS)
+
+## The decision's goals on the evaluation set's two halves side by side: the final half with a
+## calibration made in its truths' passes, the tuning half with it reused (about 18 minutes; timing
+## lock held); BENCH_ARGS=--tables-only prints the table of the last run.
+report-halves: $(VENV)/.stamp
+	flock /tmp/hrc-bench.lock $(PY) scripts/report_halves.py $(BENCH_ARGS)
 
 ## The paper's evaluation: calibrate on procedural scenes, estimate and measure on ../shared/scenes,
 ## the calibration and the truths in the same passes (about 42 minutes on the 2-core VM, 13 with

@@ -535,3 +535,31 @@ def test_large_builds_list_both_calibrations_builds_with_their_page_faults():
     assert rows[0] == {"scene": "big", "triangles": 1_048_576, "kind": "bvh", "build": [1.2, 0.8],
                        "faults": [120_000, None], "system": [0.25, 0.25]}
     assert rows[1]["faults"] == [None, None]
+
+
+def test_report_halves_prints_every_goal_of_both_halves_side_by_side(tmp_path):
+    """scripts/report_halves.py --tables-only: one row per goal with each half's figure, the
+    hybrid's worst case recomputed from the reports' scenes (here the BVH wins from 4e6 rays
+    on, and the sampled hybrid pays its grid build and estimate on top of the oracle)."""
+    summary = {"errors": {"median_abs": 12.5}, "rc_repeatability": {"median": 40.0, "max": 90.0},
+               "embree": {"errors": {"median_abs": 7.5}},
+               "picks": {"percent": 97.5, "correct": 39, "considered": 40},
+               "plan_repeatability": {"bvh": {"median": 1.03, "max": 1.05}},
+               "interval_coverage": {"held": 1, "scenes": 1, "never_above": 0}}
+    for half in ("tuning", "final"):
+        (tmp_path / half).mkdir()
+        (tmp_path / half / "report.json").write_text(json.dumps(
+            {"meta": {"date": f"{half} date"}, "summary": summary, "scenes": [scene(name=half).to_dict()]}))
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_halves.py"), "--tables-only", "--out",
+                          str(tmp_path)], capture_output=True, text=True, check=True).stdout
+    lines = {ln.split(" | ")[0].lstrip("| "): ln for ln in out.splitlines() if ln.startswith("| ")}
+    assert lines["break-even error vs the numpy BVH, median absolute"].endswith("| <= 25% | 12.5% | 12.5% |")
+    assert "| 97.5% (39/40) |" in lines["correct picks (totals differ > 10%)"]
+    worst = lines["hybrid / oracle, grid vs numpy BVH: median; worst"]
+    assert "(tuning, " in worst and "(final, " in worst, worst
+    totals = evaluate.strategy_totals(scene(), evaluate.RAY_COUNTS)
+    assert f"{np.max(totals['hybrid'] / totals['oracle']):.3f} (" in worst
+    assert "tuning date" in out and "final date" in out
+    missing = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_halves.py"), "--tables-only", "--out",
+                              str(tmp_path / "none")], capture_output=True, text=True)
+    assert missing.returncode == 2 and "run without --tables-only first" in missing.stderr
