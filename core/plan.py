@@ -591,12 +591,9 @@ def _settled_without_grid(mesh, expected_rays, calibration, pri, cands, kinds, u
     est = {kk: calibration.estimate(kk, n) for kk in cands}
     best = min(est, key=lambda kk: (est[kk].build_time + r * est[kk].per_ray, kk))
     grid = calibration.grid_estimate(n)
-    surface = mesh.is_surface() and grid is not None
     ceiling = pri.ceiling.get(best)
-    if ceiling is None and not surface:
-        return None
-    sure = settle_bound(grid, est[best], math.inf if ceiling is None else ceiling)
-    bound = settle_bound(grid, est[best], math.inf if ceiling is None else ceiling, surface=surface)
+    sure = settle_bound(grid, est[best], ceiling)
+    bound = settle_bound(grid, est[best], ceiling, surface=mesh.is_surface())
     if r < bound:
         return None
     near = bound < sure  # settled within the slack, not because H surely wins

@@ -603,7 +603,8 @@ def test_a_plan_for_a_surface_builds_the_structure_within_the_slack_of_the_grid_
     bound = rule.regret_bound(grid, bvh)
     assert bound == pytest.approx((bvh.build_time - s * grid.build_time) / (s * grid.per_ray - bvh.per_ray))
     assert 0 < bound < rule.settle_bound(grid, bvh, cal.prior(n, ("bvh",)).ceiling["bvh"])
-    assert rule.settle_bound(grid, bvh, surface=True) == pytest.approx(bound)
+    assert rule.settle_bound(grid, bvh, None, surface=True) == pytest.approx(bound)
+    assert rule.settle_bound(grid, bvh, None) == math.inf  # no ceiling and no surface: never without a sample
     # above the bound building the BVH costs at most the slack more than building the grid
     for r in (bound, 10 * bound, 1e9):
         assert bvh.build_time + r * bvh.per_ray <= s * (grid.build_time + r * grid.per_ray) * (1 + 1e-12)

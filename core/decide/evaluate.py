@@ -320,9 +320,7 @@ def settled_without_grid(s: SceneResult, rays, kinds=("bvh",)) -> tuple[np.ndarr
     totals = np.stack([est[k].build_time + r * est[k].per_ray for k in names])
     pick = np.asarray(names, dtype=object)[np.argmin(totals, axis=0)]
     grid = s.prior_estimated.get("grid")
-    surface = s.surface and grid is not None
-    bounds = {k: settle_bound(grid, est[k], s.ceiling.get(k, math.inf), surface=surface)
-              if k in s.ceiling or surface else math.inf for k in names}
+    bounds = {k: settle_bound(grid, est[k], s.ceiling.get(k), surface=s.surface) for k in names}
     return r >= np.array([bounds[k] for k in pick], np.float64), pick
 
 

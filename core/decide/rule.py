@@ -108,20 +108,25 @@ def regret_bound(grid, estimate, slack: float = SETTLE_SLACK) -> float:
     return max(float(estimate.build_time) - s * float(grid.build_time), 0.0) / gain
 
 
-def settle_bound(grid, estimate, ceiling: float = math.inf, surface: bool = False) -> float:
-    """The rays from which a plan builds ``estimate``'s structure (a ``cost.Cost`` for N) at
-    once, nothing being built yet, and neither the grid nor a sample: from where building it
-    beats building the grid, R_0 = (T_B^H - T_B^G) / (t_G - t_H) with the grid's build and time
-    per ray at the low end of the calibration's estimate for N (``grid``,
-    ``Calibration.grid_estimate``; 0 where H builds faster, inf where the grid is faster per
-    ray), never above the calibration's ``ceiling``, its bound over all its scenes; for a
+def settle_bound(grid, estimate, ceiling: float | None, surface: bool = False) -> float:
+    """The rays from which a plan builds ``estimate``'s structure H (a ``cost.Cost`` for N) at
+    once, nothing being built yet, and neither the grid nor a sample (inf: never).
+
+    Where the calibration bounds the break-even against H over all its scenes (``ceiling``;
+    None where it does not), from where building H beats building the grid,
+    R_0 = (T_B^H - T_B^G) / (t_G - t_H) with the grid's build and time per ray at the low end
+    of the calibration's estimate for N (``grid``, ``Calibration.grid_estimate``; 0 where H
+    builds faster, inf where the grid is faster per ray), never above the ceiling; for a
     ``surface`` mesh, from ``regret_bound`` if that comes first."""
-    if grid is None:
-        return float(ceiling)
-    r0 = break_even(max(float(estimate.build_time) - float(grid.build_low), 0.0), float(grid.per_ray_low),
-                    float(estimate.per_ray))
-    bound = min(float(ceiling), r0)
-    return min(bound, regret_bound(grid, estimate)) if surface else bound
+    sure = math.inf
+    if ceiling is not None:
+        sure = float(ceiling)
+        if grid is not None:
+            sure = min(sure, break_even(max(float(estimate.build_time) - float(grid.build_low), 0.0),
+                                        float(grid.per_ray_low), float(estimate.per_ray)))
+    if surface and grid is not None:
+        return min(sure, regret_bound(grid, estimate))
+    return sure
 
 
 def unsampled(grid, estimates: dict) -> tuple[float, dict]:
