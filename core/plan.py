@@ -530,9 +530,10 @@ def plan(
         # same counts, so the estimate repeats exactly with a fixed calibration
         work = grid_work(grid, o, d, sample.t, tmin, tmax, refs=calibration.uses_term("refs"),
                          traversal=traversal).to_dict()
-        g, g_lo, g_hi = calibration.count_per_ray("grid", mesh.triangle_count, work)
+        surface = mesh.is_surface()
+        g, g_lo, g_hi = calibration.count_per_ray("grid", mesh.triangle_count, work, surface)
         per_ray = {kk: e for kk in kinds if kk != "grid"
-                   if (e := calibration.count_per_ray(kk, mesh.triangle_count, work)) is not None}
+                   if (e := calibration.count_per_ray(kk, mesh.triangle_count, work, surface)) is not None}
     p = plan_from_timings(mesh.triangle_count, expected_rays, calibration, float(grid.build_time), g,
                           grid_per_ray_low=g_lo, grid_per_ray_high=g_hi, kinds=kinds, samples=k,
                           answered=k if idx is not None else 0, per_ray=per_ray, unavailable=unavailable,

@@ -299,6 +299,18 @@ SCENES = {
 }
 
 
+#: the generators whose triangles have three vertices of their own: soups, not surfaces
+#: (``TriangleMesh.is_surface`` False); every other generator's triangles share their vertices
+SOUPS = frozenset({"soup", "slivers", "clusters", "sizes"})
+
+
+def is_surface_scene(name: str) -> bool | None:
+    """Whether the calibration scene ``name`` (``generator-size``, ``calibration_set``) is a
+    surface, from its generator; None for a name no generator makes."""
+    generator = str(name).split("-", 1)[0]
+    return None if generator not in SCENES else generator not in SOUPS
+
+
 def make_scene(name: str, n: int, seed=0) -> TriangleMesh:
     """``SCENES[name](n, seed)`` with a clear error for an unknown name."""
     try:

@@ -1046,3 +1046,44 @@ def test_the_evaluated_hybrid_settles_where_the_plan_does_on_the_estimates_for_n
     settled, _ = ev.settled_without_grid(flat, [near * 0.99, near * 1.01])
     assert settled.tolist() == [False, True]
     assert not ev.settled_without_grid(ev.SceneResult(**{**flat.__dict__, "surface": False}), [1e9])[0].any()
+
+
+def test_a_surface_reads_the_spread_over_the_calibrations_surfaces(tmp_path):
+    """The count models' interval for a surface mesh is the spread over the calibration scenes
+    that are surfaces (``scenes.is_surface_scene``): soups, whose trees trace far slower than
+    any count predicts, widen the spread over every scene but not that one.  A file without
+    it gets it from its own records when loaded; a soup reads the whole spread."""
+    from hybrid_raycast.core import scenes as S
+    from hybrid_raycast.core.decide import load
+
+    for gen in S.SCENES:
+        assert S.is_surface_scene(f"{gen}-600") == S.make_scene(gen, 600).is_surface(), gen
+    assert S.is_surface_scene("bunny") is None
+    a, b = 3e-7, 4e-8
+    names = ["sphere-1k", "torus-2k", "terrain-3k", "city-4k", "soup-1k", "slivers-2k"]
+    recs = [SceneRecord(name, 1000 * (i + 1), 1000,
+                        {"grid": Measurement(0.01, 1000 * (a + b * s) * (1.0 + 0.02 * i if S.is_surface_scene(name) else 3.0), 1000)},
+                        work={"cells": 2.0 * s, "steps": float(s), "candidates": 10.0 + 3 * (i % 3)})
+            for i, (name, s) in enumerate(zip(names, (4, 7, 9, 11, 5, 8)))]
+    f = cost.fit_counts(recs, ("grid",))["grid"]
+    assert f.high > 1.5 and f.surface_high < 1.1 and f.surface_low <= 1.0 <= f.surface_high
+    assert f.spread_for(True) == (f.surface_low, f.surface_high) and f.spread_for(False) == (f.low, f.high)
+    assert cost.surface_spread(f, recs[4:], "grid") == (None, None)  # fewer than 3 surfaces
+    cal = Calibration({}, scenes=recs, counts={"grid": f})
+    t, lo, hi = cal.count_per_ray("grid", 4000, recs[0].work, surface=True)
+    assert (lo / t, hi / t) == pytest.approx((f.surface_low, f.surface_high))
+    assert cal.count_per_ray("grid", 4000, recs[0].work)[2] / t == pytest.approx(f.high)
+    assert "surfaces [" in cal.describe()
+    # a file keeps the surfaces' spread; one made before it gets it from its own records
+    import json
+
+    cal = Calibration({"bvh": KindFit(1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7, 1)}, scenes=recs, counts={"grid": f},
+                      source="hand")
+    path = cal.save(tmp_path / "c.json")
+    assert load(path).counts["grid"] == f
+    d = json.loads(path.read_text())
+    for key in ("surface_low", "surface_high"):
+        d["counts"]["grid"].pop(key)
+    path.write_text(json.dumps(d))
+    back = load(path).counts["grid"]
+    assert (back.surface_low, back.surface_high) == pytest.approx((f.surface_low, f.surface_high), rel=1e-12)

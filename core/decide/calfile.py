@@ -25,7 +25,7 @@ import numpy as np
 from ..atomic import atomic_path
 from .cost import (DEFAULT_MODEL, DEFAULT_SPREAD, MODELS, Cost, CountFit, KindFit, Measurement, SceneRecord,
                    Prior, describe_fit, fit, fit_counts, grid_estimate, grid_laws, prior)
-from .cost import COUNT_FALLBACK, COUNT_TERMS
+from .cost import COUNT_FALLBACK, COUNT_TERMS, surface_spread
 from .points import PointModel
 
 #: bump when the JSON layout or the meaning of a field changes.  3: constants
@@ -188,14 +188,17 @@ class Calibration:
         """Whether any count model weighs the work count ``name`` (e.g. 'refs')."""
         return any(name in f.terms for f in self.counts.values())
 
-    def count_per_ray(self, kind: str, n: int, work: dict):
+    def count_per_ray(self, kind: str, n: int, work: dict, surface: bool = False):
         """(point, low, high) time per ray of ``kind`` ('grid' or a structure) on an
-        N-triangle scene whose grid sample counted ``work``; None without a count model."""
+        N-triangle scene whose grid sample counted ``work``; None without a count model.
+        surface: the scene is a surface mesh, whose interval is the spread over the
+        calibration's surfaces (``CountFit.spread_for``)."""
         f = self.counts.get(kind)
         if f is None or not work:
             return None
         t = f.predict(n, work)
-        return t, t * f.low, t * f.high
+        lo, hi = f.spread_for(surface)
+        return t, t * lo, t * hi
 
     def prior(self, n: int, kinds) -> Prior:
         """What the calibration alone says about an N-triangle scene against ``kinds`` (the
@@ -213,7 +216,8 @@ class Calibration:
         for k, f in self.fits.items():
             lines.append(f"  {k:7s} {describe_fit(f, self.model)}   ({f.scenes} scenes)")
         for k, f in self.counts.items():
-            lines.append(f"  {k:7s} per ray = {f.formula()}   [{f.low:.2f}, {f.high:.2f}]x   ({f.scenes} scenes)")
+            surf = f", surfaces [{f.surface_low:.2f}, {f.surface_high:.2f}]x" if f.surface_low is not None else ""
+            lines.append(f"  {k:7s} per ray = {f.formula()}   [{f.low:.2f}, {f.high:.2f}]x{surf}   ({f.scenes} scenes)")
         return "\n".join(lines)
 
     # -- JSON ---------------------------------------------------------------------------
@@ -275,7 +279,9 @@ class Calibration:
                 source=str(d.get("source", "measured")), version=version, notes=[str(x) for x in d.get("notes", [])],
                 counts={str(k): CountFit(tuple(v["terms"]), tuple(float(c) for c in v["coef"]), float(v["low"]),
                                          float(v["high"]), int(v.get("scenes", 0)), str(v.get("form", "linear")),
-                                         tuple(float(r) for r in v.get("refs", ())))
+                                         tuple(float(r) for r in v.get("refs", ())),
+                                         *(None if v.get(b) is None else float(v[b])
+                                           for b in ("surface_low", "surface_high")))
                         for k, v in d.get("counts", {}).items()},
                 points=dict(d.get("points") or {}),
             )
@@ -293,6 +299,9 @@ class Calibration:
             cal.counts.update(new)
             cal.notes.append(f"count models of {', '.join(sorted(new))} refitted on the file's records with this "
                              f"package's terms")
+        for k, f in cal.counts.items():
+            if f.surface_low is None and k not in new:  # a file made before the surfaces' spread
+                f.surface_low, f.surface_high = surface_spread(f, cal.scenes, k, cal.spread)
         if not fits:
             raise CalibrationError("no fitted constants in the file")
         for k, f in fits.items():

@@ -638,6 +638,19 @@ class CountFit:
     scenes: int = 0
     form: str = "linear"
     refs: tuple = ()
+    #: the spread of measured / fitted over the calibration scenes that are surfaces
+    #: (``scenes.is_surface_scene``), as (low, high) multipliers; None in older files or with
+    #: fewer than 3 such scenes.  A surface mesh's interval reads these (``surface_spread``):
+    #: the soups' trees trace far slower than any count predicts and widen the whole spread
+    surface_low: float | None = None
+    surface_high: float | None = None
+
+    def spread_for(self, surface: bool) -> tuple[float, float]:
+        """(low, high): the surfaces' spread for a surface mesh where the fit holds one, else
+        the spread over every scene."""
+        if surface and self.surface_low is not None and self.surface_high is not None:
+            return self.surface_low, self.surface_high
+        return self.low, self.high
 
     def _refs(self) -> tuple:
         return tuple(self.refs) if self.refs else tuple(0.0 for _ in self.terms)
@@ -803,13 +816,34 @@ def fit_counts(records, kinds, spread=DEFAULT_SPREAD, terms_of=None, forms_of=No
     for k in kinds:
         if k not in terms_of:
             continue
-        rows = [(r.triangles, r.work, r.kinds[k].per_ray) for r in records if r.work and k in r.kinds]
         for names in (terms_of[k], None if k in chosen else COUNT_FALLBACK.get(k)):
-            have = [row for row in rows if names and all(t in terms(row[0], row[1]) for t in names)]
-            if len(have) >= 3:
-                out[k] = CountFit.fit(have, names, spread, forms_of.get(k, "linear"), reference)
+            usable = counted(records, k, names) if names else []
+            if len(usable) >= 3:
+                f = CountFit.fit([(r.triangles, r.work, r.kinds[k].per_ray) for r in usable], names, spread,
+                                 forms_of.get(k, "linear"), reference)
+                f.surface_low, f.surface_high = surface_spread(f, usable, k, spread)
+                out[k] = f
                 break
     return out
+
+
+def counted(records, kind: str, names) -> list[SceneRecord]:
+    """The records that measured ``kind`` and hold every count the terms ``names`` weigh."""
+    return [r for r in records if r.work and kind in r.kinds and all(t in terms(r.triangles, r.work) for t in names)]
+
+
+def surface_spread(f: CountFit, records, kind: str, spread=DEFAULT_SPREAD) -> tuple[float | None, float | None]:
+    """(low, high): the ``spread`` percentiles of measured / ``f``'s prediction over the
+    records whose scenes are surfaces (``scenes.is_surface_scene``), as ``CountFit.fit``
+    states its own; (None, None) with fewer than 3 of them."""
+    from ..scenes import is_surface_scene
+
+    q = [r.kinds[kind].per_ray / p for r in counted(records, kind, f.terms)
+         if is_surface_scene(r.name) and r.kinds[kind].per_ray > 0 and (p := f.predict(r.triangles, r.work)) > 0]
+    if len(q) < 3:
+        return None, None
+    lo, hi = (float(v) for v in np.percentile(q, spread))
+    return min(lo, 1.0), max(hi, 1.0)
 
 
 # -- a prior bound on the break-even, before any sample ------------------------------------------
